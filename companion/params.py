@@ -1,0 +1,410 @@
+"""Typed parameter registry: declaration, validation, change notification and persistence.
+
+Parameters are declared next to the code that owns them (`ParamSpec`), the way ArduPilot's
+`AP_GROUPINFO` and PX4's `module.yaml` do, so the documentation, the MAVLink parameter protocol,
+the legacy protocol and the parameter files all come from one table.
+
+Only two types exist, int32 and float32, because those are the only ones every MAVLink ground
+station (MAVSDK in particular) handles reliably.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import os
+import re
+import tempfile
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+NAME_RE = re.compile(r"^[A-Z][A-Z0-9]*_[A-Z0-9_]+$")
+MAX_NAME_LEN = 16
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+
+# MAV_PARAM_TYPE values, used by the QGroundControl .params format and the MAVLink bridge.
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
+
+
+class ParamType(enum.Enum):
+    INT32 = "int32"
+    FLOAT32 = "float32"
+
+    @property
+    def mav_type(self) -> int:
+        return MAV_PARAM_TYPE_INT32 if self is ParamType.INT32 else MAV_PARAM_TYPE_REAL32
+
+
+ParamValue = int | float
+
+
+def to_float32(value: float) -> float:
+    """Round a Python float to the nearest float32, the precision the parameter really has."""
+    return float(np.float32(value))
+
+
+def format_value(ptype: ParamType, value: ParamValue) -> str:
+    """Shortest text that reads back to the same int32 / float32."""
+    if ptype is ParamType.INT32:
+        return str(int(value))
+    return np.format_float_positional(np.float32(value), unique=True, trim="-")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter's metadata; `default`, `min` and `max` are in `unit`."""
+
+    name: str
+    ptype: ParamType
+    default: ParamValue
+    min: ParamValue
+    max: ParamValue
+    unit: str = ""
+    description: str = ""
+    read_only: bool = False
+    reboot_required: bool = False
+
+    def __post_init__(self) -> None:
+        if len(self.name) > MAX_NAME_LEN or not NAME_RE.match(self.name):
+            raise ValueError(
+                f"parameter name {self.name!r} must be GROUP_NAME, upper case, "
+                f"at most {MAX_NAME_LEN} characters"
+            )
+        if not (self.min <= self.default <= self.max):
+            raise ValueError(
+                f"parameter {self.name}: default {self.default} outside [{self.min}, {self.max}]"
+            )
+        if self.ptype is ParamType.INT32:
+            for v in (self.default, self.min, self.max):
+                if int(v) != v or not INT32_MIN <= v <= INT32_MAX:
+                    raise ValueError(f"parameter {self.name}: {v} is not an int32")
+
+    @property
+    def group(self) -> str:
+        return self.name.split("_", 1)[0]
+
+    def validate(self, value: object) -> ParamValue:
+        """Coerce `value` to this parameter's type or raise `ParamError` saying why not."""
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise ParamError(self.name, f"wrong type: expected {self.ptype.value}, got {value!r}")
+        v = float(value)
+        if math.isnan(v) or math.isinf(v):
+            raise ParamError(self.name, f"value {value!r} is not finite")
+        coerced: ParamValue
+        if self.ptype is ParamType.INT32:
+            if v != int(v):
+                raise ParamError(self.name, f"wrong type: {value!r} is not an integer (int32)")
+            coerced = int(v)
+        else:
+            coerced = to_float32(v)
+        lo, hi = self.min, self.max
+        if self.ptype is ParamType.FLOAT32:
+            lo, hi = to_float32(lo), to_float32(hi)
+        if not lo <= coerced <= hi:
+            raise ParamError(
+                self.name,
+                f"out of range: {format_value(self.ptype, coerced)} not in "
+                f"[{format_value(self.ptype, lo)}, {format_value(self.ptype, hi)}]"
+                + (f" {self.unit}" if self.unit else ""),
+            )
+        return coerced
+
+
+class ParamError(ValueError):
+    """A refused parameter operation; `reason` is short enough for a MAVLink STATUSTEXT."""
+
+    def __init__(self, name: str, reason: str) -> None:
+        super().__init__(f"{name}: {reason}")
+        self.name = name
+        self.reason = reason
+
+
+def int_param(name: str, default: int, lo: int, hi: int, unit: str = "", desc: str = "",
+              *, read_only: bool = False, reboot: bool = False) -> ParamSpec:
+    return ParamSpec(name, ParamType.INT32, default, lo, hi, unit, desc, read_only, reboot)
+
+
+def float_param(name: str, default: float, lo: float, hi: float, unit: str = "", desc: str = "",
+                *, read_only: bool = False, reboot: bool = False) -> ParamSpec:
+    return ParamSpec(name, ParamType.FLOAT32, default, lo, hi, unit, desc, read_only, reboot)
+
+
+@dataclass(frozen=True)
+class FileIssue:
+    """A line of a parameter file that could not be applied, and why."""
+
+    path: str
+    line: int
+    text: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}: {self.reason}: {self.text.strip()!r}"
+
+
+Listener = Callable[[str, ParamValue], None]
+
+
+class ParamRegistry:
+    """All parameters of one vehicle, in declaration order (which gives the MAVLink index).
+
+    Thread-safe: the lock covers dictionary access only. Listeners run in the setter's thread
+    after the lock is released and must be cheap (set a flag, post to a queue).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._specs: dict[str, ParamSpec] = {}
+        self._order: list[str] = []
+        self._values: dict[str, ParamValue] = {}
+        self._listeners: list[Listener] = []
+        self._generation = 0
+        self._saved_generation = 0
+        self._path: Path | None = None
+
+    # -- declaration -------------------------------------------------------------------------
+    def declare(self, spec: ParamSpec) -> None:
+        with self._lock:
+            old = self._specs.get(spec.name)
+            if old is not None:
+                if old != spec:
+                    raise ValueError(f"parameter {spec.name} declared twice with different metadata")
+                return
+            self._specs[spec.name] = spec
+            self._order.append(spec.name)
+            self._values[spec.name] = spec.default
+
+    def declare_all(self, specs: Iterable[ParamSpec]) -> None:
+        for spec in specs:
+            self.declare(spec)
+
+    # -- access ------------------------------------------------------------------------------
+    def __contains__(self, name: object) -> bool:
+        with self._lock:
+            return name in self._specs
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._order)
+
+    def __iter__(self) -> Iterator[ParamSpec]:
+        return iter(self.specs())
+
+    def specs(self) -> list[ParamSpec]:
+        with self._lock:
+            return [self._specs[n] for n in self._order]
+
+    def spec(self, name: str) -> ParamSpec:
+        with self._lock:
+            try:
+                return self._specs[name]
+            except KeyError:
+                raise ParamError(name, "unknown parameter") from None
+
+    def index_of(self, name: str) -> int:
+        with self._lock:
+            try:
+                return self._order.index(name)
+            except ValueError:
+                raise ParamError(name, "unknown parameter") from None
+
+    def name_at(self, index: int) -> str:
+        with self._lock:
+            if not 0 <= index < len(self._order):
+                raise ParamError(f"#{index}", f"index out of range 0..{len(self._order) - 1}")
+            return self._order[index]
+
+    def get(self, name: str) -> ParamValue:
+        with self._lock:
+            try:
+                return self._values[name]
+            except KeyError:
+                raise ParamError(name, "unknown parameter") from None
+
+    def snapshot(self) -> dict[str, ParamValue]:
+        with self._lock:
+            return {n: self._values[n] for n in self._order}
+
+    # -- change ------------------------------------------------------------------------------
+    def set(self, name: str, value: object, *, force: bool = False) -> ParamValue:
+        """Validate and apply; raises ParamError (unknown, read-only, wrong type, range).
+
+        `force` lets the owner change a read-only value (for example a measured figure).
+        """
+        spec = self.spec(name)
+        if spec.read_only and not force:
+            raise ParamError(name, "read-only")
+        coerced = spec.validate(value)
+        with self._lock:
+            changed = self._values[name] != coerced
+            self._values[name] = coerced
+            if changed:
+                self._generation += 1
+            listeners = list(self._listeners)
+        if changed:
+            for listener in listeners:
+                try:
+                    listener(name, coerced)
+                except Exception:  # a listener's bug must not refuse a valid change
+                    log.exception("parameter listener failed for %s", name)
+        return coerced
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        """Call `listener(name, value)` after every change; returns an unsubscribe function."""
+        with self._lock:
+            self._listeners.append(listener)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                if listener in self._listeners:
+                    self._listeners.remove(listener)
+
+        return unsubscribe
+
+    # -- persistence -------------------------------------------------------------------------
+    def attach_file(self, path: Path) -> list[FileIssue]:
+        """Load `path` if it exists and keep it as the place changes are persisted to.
+
+        Bad lines are reported and left at their defaults; the rest still applies, because a
+        damaged file must never keep the aircraft from starting.
+        """
+        self._path = Path(path)
+        issues: list[FileIssue] = []
+        if self._path.exists():
+            issues = self.load(self._path)
+        with self._lock:
+            self._saved_generation = self._generation
+        return issues
+
+    @property
+    def path(self) -> Path | None:
+        return self._path
+
+    @property
+    def dirty(self) -> bool:
+        with self._lock:
+            return self._generation != self._saved_generation
+
+    def load(self, path: Path) -> list[FileIssue]:
+        """Apply a QGroundControl `.params` or MAVProxy `.parm` file; return the lines refused."""
+        issues: list[FileIssue] = []
+        for lineno, name, text, value, problem in parse_param_file(path):
+            if problem is not None:
+                issues.append(FileIssue(str(path), lineno, text, problem))
+                continue
+            assert name is not None
+            try:
+                self.set(name, value, force=True)
+            except ParamError as exc:
+                issues.append(FileIssue(str(path), lineno, text, exc.reason))
+        for issue in issues:
+            log.warning("parameter file: %s (default kept)", issue)
+        return issues
+
+    def flush(self) -> bool:
+        """Persist to the attached file if anything changed since the last save; True if saved."""
+        with self._lock:
+            if self._path is None or self._generation == self._saved_generation:
+                return False
+            generation = self._generation
+        self.save(self._path)
+        with self._lock:
+            self._saved_generation = max(self._saved_generation, generation)
+        return True
+
+    def save(self, path: Path, *, fmt: str = "parm", sysid: int = 1, compid: int = 1) -> None:
+        """Write atomically (temp file, fsync, rename, fsync dir): a crash leaves old or new."""
+        text = self.render(fmt, sysid=sysid, compid=compid)
+        atomic_write_text(Path(path), text)
+
+    def render(self, fmt: str = "parm", *, sysid: int = 1, compid: int = 1) -> str:
+        snapshot = self.snapshot()
+        specs = {s.name: s for s in self.specs()}
+        lines: list[str] = []
+        if fmt == "parm":
+            lines.append("# MAVProxy-style parameter file: NAME VALUE")
+            for name, value in snapshot.items():
+                lines.append(f"{name:<16} {format_value(specs[name].ptype, value)}")
+        elif fmt == "params":
+            lines.append(f"# Onboard parameters for Vehicle {sysid}")
+            lines.append("#")
+            lines.append("# Vehicle-Id Component-Id Name Value Type")
+            for name, value in snapshot.items():
+                spec = specs[name]
+                lines.append(
+                    f"{sysid}\t{compid}\t{name}\t{format_value(spec.ptype, value)}\t{spec.ptype.mav_type}"
+                )
+        else:
+            raise ValueError(f"unknown parameter file format {fmt!r} (use 'parm' or 'params')")
+        return "\n".join(lines) + "\n"
+
+
+def parse_param_file(
+    path: Path,
+) -> Iterator[tuple[int, str | None, str, float, str | None]]:
+    """Yield (line number, name, raw line, value, problem) for each non-comment line.
+
+    Accepts both the QGroundControl layout (`sysid compid NAME VALUE TYPE`, tab separated) and the
+    MAVProxy layout (`NAME VALUE`, spaces or a comma); the format is decided per line so a
+    hand-edited mixture still loads.
+    """
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        yield 0, None, "", 0.0, f"cannot read file: {exc.strerror}"
+        return
+    for lineno, bline in enumerate(raw.split(b"\n"), start=1):
+        try:
+            line = bline.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            yield lineno, None, repr(bline[:40]), 0.0, f"not UTF-8 text (byte {exc.start})"
+            continue
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        fields = re.split(r"[\s,]+", stripped)
+        if len(fields) == 5:
+            name, value_text = fields[2], fields[3]
+        elif len(fields) == 2:
+            name, value_text = fields[0], fields[1]
+        else:
+            yield lineno, None, line, 0.0, f"expected 'NAME VALUE' or 5 QGC columns, got {len(fields)} fields"
+            continue
+        try:
+            value = float(value_text)
+        except ValueError:
+            yield lineno, None, line, 0.0, f"value {value_text!r} of {name} is not a number"
+            continue
+        yield lineno, name, line, value, None
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+

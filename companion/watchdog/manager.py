@@ -1,0 +1,405 @@
+"""The thread manager: starts, supervises, restarts and stops the managed threads.
+
+It runs in the main thread, as in the thesis. Every `MGR_WDG_GRAN_MS` it wakes, and for each
+thread whose watchdog period has elapsed it compares the thread's cycle counter with the value
+seen at the previous check (the alive flag, tested and reset):
+
+- cycles advanced: alive;
+- no cycle but the worker keeps returning from `step` without data: *silent* (a quiet device);
+  reported, not restarted, because the driver reconnects by itself and a restart cannot make a
+  device talk;
+- not even that: *stalled*; the worker is stopped safely and restarted.
+
+Restart policy uses Erlang/OTP's terms: restart type per thread, and an intensity (at most
+`MGR_RST_INTENS` restarts within `MGR_RST_PER_S`) beyond which the thread is marked failed and
+left down while the others keep running.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from companion.params import ParamError, ParamSpec, int_param
+from companion.sync import MessageQueue
+from companion.watchdog.events import EventKind, WatchdogEvent
+from companion.watchdog.thread import (
+    ManagedThread,
+    RestartType,
+    RuntimeContext,
+    ThreadInterrupted,
+    ThreadStatus,
+)
+
+log = logging.getLogger(__name__)
+
+MANAGER_PARAMS: list[ParamSpec] = [
+    int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
+              "Programmed execution time: the runtime stops cleanly after it. 0 = unlimited."),
+    int_param("MGR_STATUS_MS", 1000, 50, 600_000, "ms",
+              "Period of thread status messages to the ground (one thread per period, in rotation)."),
+    int_param("MGR_MSTAT_MS", 2000, 100, 600_000, "ms",
+              "Period of the manager status message to the ground."),
+    int_param("MGR_WDG_GRAN_MS", 20, 1, 10_000, "ms",
+              "Watchdog granularity: how often the manager wakes to check the threads. Must not "
+              "exceed the shortest thread watchdog period."),
+    int_param("MGR_RST_INTENS", 5, 1, 100_000, "",
+              "Restart intensity: more restarts than this within MGR_RST_PER_S marks a thread failed."),
+    int_param("MGR_RST_PER_S", 30, 1, 86_400, "s",
+              "Restart intensity period, in seconds."),
+    int_param("MGR_SHUTDOWN_MS", 500, 10, 60_000, "ms",
+              "How long a stopping thread may take before it is interrupted, then abandoned."),
+]
+
+
+@dataclass(frozen=True)
+class ManagerCommand:
+    """A request to the manager from a bridge or the console; `reply(ok, reason)` acknowledges."""
+
+    kind: str  # "stop" | "reboot" | "restart_thread"
+    thread: str | int | None = None
+    reason: int = 0
+    reply: Callable[[bool, str], None] | None = None
+
+
+@dataclass(frozen=True)
+class ManagerStatus:
+    elapsed_ms: int
+    exec_time_s: int
+    status_ms: int
+    manager_status_ms: int
+    granularity_ms: int
+    n_threads: int
+    stopping: bool
+    healthy: bool  # no thread stalled, silent or failed at the last check
+
+
+class ThreadManager:
+    """Owns the threads' lifecycle; all its methods except `post`, `wake`, `request_stop` and
+    the status readers must be called from the main thread."""
+
+    def __init__(self, ctx: RuntimeContext, threads: Sequence[ManagedThread]) -> None:
+        self.ctx = ctx
+        self.threads = list(threads)
+        names = [t.name for t in self.threads]
+        if len(set(names)) != len(names):
+            raise ValueError(f"thread names must be unique: {names}")
+        self.commands: MessageQueue[ManagerCommand] = MessageQueue(256)
+        self._wake = threading.Event()
+        self._stop_reason: str | None = None
+        self._subscribers: list[MessageQueue[WatchdogEvent]] = []
+        self._sub_lock = threading.Lock()
+        self._start_mono_ns = 0
+        self._next_check_ns: dict[str, int] = {}
+        self._seen_cycles: dict[str, int] = {}
+        self._seen_beats: dict[str, int] = {}
+        self._silent: dict[str, bool] = {}
+        self._restart_times: dict[str, deque[float]] = {t.name: deque() for t in self.threads}
+        self._abandoned_workers: list[threading.Thread] = []
+        self._started = False
+        self.on_tick: list[Callable[[], None]] = []  # called every wake, in the main thread
+        ctx.params.declare_all(MANAGER_PARAMS)
+        for t in self.threads:
+            t.ctx = ctx
+            t._manager = self
+            ctx.params.declare_all(t.base_params() + t.declare_params())
+        self._param_unsub = ctx.params.subscribe(self._on_param_changed)
+
+    # ---------------------------------------------------------------- public, any thread
+    def post(self, command: ManagerCommand) -> bool:
+        ok = self.commands.put(command)
+        self._wake.set()
+        return ok
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def request_stop(self, reason: str = "requested") -> None:
+        """Ask the run loop to end (signal handlers, STOP commands). Safe from any thread."""
+        if self._stop_reason is None:
+            self._stop_reason = reason
+        self._wake.set()
+
+    def subscribe_events(self, capacity: int = 256) -> MessageQueue[WatchdogEvent]:
+        q: MessageQueue[WatchdogEvent] = MessageQueue(capacity, drop_oldest=True)
+        with self._sub_lock:
+            self._subscribers.append(q)
+        return q
+
+    def find(self, key: str | int) -> ManagedThread | None:
+        for t in self.threads:
+            if t.name == key or t.thread_id == key:
+                return t
+        return None
+
+    def thread_status(self) -> list[ThreadStatus]:
+        return [t.status() for t in self.threads]
+
+    def status(self) -> ManagerStatus:
+        p = self.ctx.params
+        elapsed = (
+            (self.ctx.clock.monotonic_ns() - self._start_mono_ns) // 1_000_000
+            if self._start_mono_ns else 0
+        )
+        healthy = all(
+            (t.failed is False) and (not t.enabled or not t.in_periodic or t.alive_at_last_check
+                                     or self._seen_cycles.get(t.name) is None)
+            for t in self.threads
+        )
+        return ManagerStatus(
+            elapsed_ms=int(elapsed),
+            exec_time_s=int(p.get("MGR_EXEC_TIME_S")),
+            status_ms=int(p.get("MGR_STATUS_MS")),
+            manager_status_ms=int(p.get("MGR_MSTAT_MS")),
+            granularity_ms=int(p.get("MGR_WDG_GRAN_MS")),
+            n_threads=len(self.threads),
+            stopping=self._stop_reason is not None,
+            healthy=healthy,
+        )
+
+    @property
+    def stop_reason(self) -> str | None:
+        return self._stop_reason
+
+    # ---------------------------------------------------------------- lifecycle (main thread)
+    def start(self) -> None:
+        """Set up and start every enabled thread, in declaration order."""
+        self._start_mono_ns = self.ctx.clock.monotonic_ns()
+        self._started = True
+        for t in self.threads:
+            if t.enabled:
+                self._start_thread(t, first=True)
+
+    def run(self, duration_s: float | None = None) -> str:
+        """Supervise until stopped; returns the stop reason ("duration", "signal", "stop", ...).
+
+        `duration_s` overrides MGR_EXEC_TIME_S when given.
+        """
+        if not self._started:
+            self.start()
+        clock = self.ctx.clock
+        while self._stop_reason is None:
+            gran_ms = int(self.ctx.params.get("MGR_WDG_GRAN_MS"))
+            self._wake.wait(clock.to_host_s(gran_ms / 1000.0))
+            self._wake.clear()
+            self._process_commands()
+            if self._stop_reason is not None:
+                break
+            self._check_threads()
+            for hook in list(self.on_tick):
+                try:
+                    hook()
+                except Exception:
+                    log.exception("manager tick hook failed")
+            limit_s = duration_s if duration_s is not None else int(
+                self.ctx.params.get("MGR_EXEC_TIME_S"))
+            if limit_s and clock.monotonic_ns() - self._start_mono_ns >= limit_s * 1e9:
+                self.request_stop("duration")
+        return self._stop_reason or "stop"
+
+    def shutdown(self) -> None:
+        """Stop every thread in reverse order and release its resources."""
+        for t in reversed(self.threads):
+            if t._worker is not None or t.initialised:
+                self._stop_thread(t, why="shutdown")
+                self._emit(EventKind.STOPPED, t.name, "shutdown")
+        self._param_unsub()
+        try:
+            self.ctx.params.flush()
+        except OSError as exc:
+            log.error("could not save parameters: %s", exc)
+
+    # ---------------------------------------------------------------- internals
+    def _emit(self, kind: EventKind, thread: str, detail: str = "") -> None:
+        event = WatchdogEvent(kind, thread, detail, self.ctx.clock.realtime_ns())
+        level = logging.WARNING if event.severity <= 4 else logging.INFO
+        log.log(level, "watchdog: %s", event.text())
+        with self._sub_lock:
+            subscribers = list(self._subscribers)
+        for q in subscribers:
+            q.put(event)
+
+    def _on_param_changed(self, name: str, value: object) -> None:
+        # Runs in the setter's thread: only flag things; the work happens in the main loop.
+        for t in self.threads:
+            t._mark_params_dirty(name, value)
+        self._wake.set()
+
+    def _start_thread(self, t: ManagedThread, *, first: bool = False) -> bool:
+        try:
+            t.setup()
+            t.initialised = True
+        except Exception as exc:
+            t.last_error = f"setup: {type(exc).__name__}: {exc}"
+            log.error("thread %s: setup failed: %s", t.name, exc)
+            try:
+                t.cleanup()
+            except Exception:
+                log.exception("thread %s: cleanup after failed setup", t.name)
+            t.initialised = False
+            self._emit(EventKind.CRASH, t.name, t.last_error)
+            self._schedule_check(t, self.ctx.clock.monotonic_ns())
+            return False
+        self._seen_cycles[t.name] = t.cycles
+        self._seen_beats[t.name] = t.heartbeats
+        self._silent[t.name] = False
+        t._start_worker()
+        self._schedule_check(t, self.ctx.clock.monotonic_ns())
+        if first:
+            self._emit(EventKind.STARTED, t.name)
+        return True
+
+    def _schedule_check(self, t: ManagedThread, now_ns: int) -> None:
+        self._next_check_ns[t.name] = now_ns + int(t.watchdog_ms * 1e6)
+
+    def _stop_thread(self, t: ManagedThread, *, why: str) -> str:
+        """Stop the worker safely and release its resources; returns how it ended:
+        "stopped", "interrupted" or "abandoned"."""
+        host_timeout_s = self.ctx.clock.to_host_s(int(self.ctx.params.get("MGR_SHUTDOWN_MS")) / 1000)
+        worker = t._worker
+        outcome = "stopped"
+        t._stop.set()
+        try:
+            t.interrupt_io()
+        except Exception:
+            log.exception("thread %s: interrupt_io failed", t.name)
+        if worker is not None and worker is not threading.current_thread():
+            worker.join(host_timeout_s)
+            if worker.is_alive():
+                # A pure-Python loop that ignores its stop event: interrupt it.
+                t._raise_async(ThreadInterrupted)
+                worker.join(host_timeout_s)
+                outcome = "interrupted"
+                if worker.is_alive():
+                    # Stuck inside C: nothing can stop it. Leave it behind (daemon) and replace.
+                    outcome = "abandoned"
+                    t.abandoned += 1
+                    self._abandoned_workers.append(worker)
+                    self._emit(EventKind.ABANDONED, t.name, why)
+                else:
+                    t.interrupted += 1
+                    self._emit(EventKind.INTERRUPTED, t.name, why)
+        t._worker = None
+        t.running = False
+        t.in_periodic = False
+        try:
+            t.cleanup()
+        except Exception:
+            log.exception("thread %s: cleanup failed", t.name)
+        t.initialised = False
+        return outcome
+
+    def _restart(self, t: ManagedThread, why: str) -> None:
+        """Stop, recover and start again, unless the restart type or intensity says no."""
+        if t.restart is RestartType.TEMPORARY and why != "command":
+            self._stop_thread(t, why=why)
+            return
+        now = time.monotonic()
+        times = self._restart_times[t.name]
+        period_s = int(self.ctx.params.get("MGR_RST_PER_S"))
+        intensity = int(self.ctx.params.get("MGR_RST_INTENS"))
+        while times and now - times[0] > self.ctx.clock.to_host_s(period_s):
+            times.popleft()
+        if len(times) >= intensity and why != "command":
+            self._stop_thread(t, why=why)
+            t.failed = True
+            self._emit(EventKind.FAILED, t.name,
+                       f"{len(times) + 1} restarts within {period_s} s; left down")
+            return
+        times.append(now)
+        self._stop_thread(t, why=why)
+        try:
+            t.recover()
+        except Exception:
+            log.exception("thread %s: recover failed", t.name)
+        t.restarts += 1
+        if self._start_thread(t):
+            self._emit(EventKind.RESTARTED, t.name, why)
+
+    def _check_threads(self) -> None:
+        now = self.ctx.clock.monotonic_ns()
+        for t in self.threads:
+            if t.failed:
+                continue
+            enabled = t.enabled
+            if not enabled:
+                if t._worker is not None or t.initialised:
+                    self._stop_thread(t, why="disabled")
+                    self._emit(EventKind.DISABLED, t.name)
+                continue
+            if t._worker is None:
+                if t.initialised is False and self._next_check_ns.get(t.name, 0) <= now:
+                    # never started, re-enabled, or a setup that failed: (re)try
+                    was_enabled_event = t.restarts == 0 and t.cycles == 0
+                    if self._start_thread(t) and not was_enabled_event:
+                        self._emit(EventKind.ENABLED, t.name)
+                continue
+            if not t._worker.is_alive():
+                kind = t._exit_kind
+                if kind == "crash":
+                    t.crashes += 1
+                    self._emit(EventKind.CRASH, t.name, t.last_error[:80])
+                    self._restart(t, "crash")
+                else:
+                    self._emit(EventKind.EXITED, t.name)
+                    if t.restart is RestartType.PERMANENT:
+                        self._restart(t, "exited")
+                    else:
+                        self._stop_thread(t, why="exited")
+                        t.initialised = True  # keep it from being restarted as "never started"
+                continue
+            if now < self._next_check_ns.get(t.name, 0):
+                continue
+            self._schedule_check(t, now)
+            if not t.in_periodic:
+                continue  # the aperiodic prologue is not under the watchdog
+            cycles, beats = t.cycles, t.heartbeats
+            if cycles != self._seen_cycles.get(t.name):
+                t.alive_at_last_check = True
+                if self._silent.get(t.name):
+                    self._silent[t.name] = False
+                    self._emit(EventKind.RECOVERED, t.name, "data again")
+            elif beats != self._seen_beats.get(t.name):
+                t.alive_at_last_check = False
+                if not self._silent.get(t.name):
+                    self._silent[t.name] = True
+                    self._emit(EventKind.SILENT, t.name, f"no data for {t.watchdog_ms} ms")
+            else:
+                t.alive_at_last_check = False
+                t.stalls += 1
+                self._emit(EventKind.STALL, t.name, f"no cycle in {t.watchdog_ms} ms")
+                self._restart(t, "stall")
+                continue
+            self._seen_cycles[t.name] = cycles
+            self._seen_beats[t.name] = beats
+
+    def _process_commands(self) -> None:
+        while (cmd := self.commands.get_nowait()) is not None:
+            ok, reason = True, ""
+            if cmd.kind in ("stop", "reboot"):
+                self.request_stop(cmd.kind)
+            elif cmd.kind == "restart_thread":
+                t = self.find(cmd.thread) if cmd.thread is not None else None
+                if t is None:
+                    ok, reason = False, f"unknown thread {cmd.thread!r}"
+                else:
+                    t.failed = False
+                    self._restart(t, "command")
+            else:
+                ok, reason = False, f"unknown command {cmd.kind!r}"
+            if cmd.reply is not None:
+                try:
+                    cmd.reply(ok, reason)
+                except Exception:
+                    log.exception("command reply failed")
+
+    def validate_granularity(self, granularity_ms: int) -> None:
+        """Refuse a granularity longer than the shortest watchdog period (legacy contract)."""
+        shortest = min((t.watchdog_ms for t in self.threads), default=granularity_ms)
+        if granularity_ms > shortest:
+            raise ParamError("MGR_WDG_GRAN_MS",
+                             f"{granularity_ms} ms exceeds the shortest watchdog period {shortest} ms")

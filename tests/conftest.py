@@ -1,0 +1,70 @@
+"""Shared fixtures: every test must leave no thread, file descriptor or socket behind."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+
+def _fds() -> set[int]:
+    try:
+        return {int(x) for x in os.listdir("/proc/self/fd")}
+    except OSError:
+        return set()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "allow_leaks: the test knowingly leaves threads behind")
+
+
+@pytest.fixture(autouse=True)
+def no_leaks(request: pytest.FixtureRequest) -> Iterator[None]:
+    threads_before = set(threading.enumerate())
+    fds_before = _fds()
+    yield
+    if request.node.get_closest_marker("allow_leaks"):
+        return
+    deadline = time.monotonic() + 5.0
+    while True:
+        extra_threads = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
+        extra_fds = _fds() - fds_before
+        if not extra_threads and not extra_fds:
+            return
+        if time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    details = []
+    for fd in sorted(extra_fds):
+        try:
+            details.append(f"fd {fd} -> {os.readlink(f'/proc/self/fd/{fd}')}")
+        except OSError:
+            details.append(f"fd {fd}")
+    pytest.fail(f"leaked threads {[t.name for t in extra_threads]} fds {details}")
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def free_tcp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(predicate, timeout_s: float, interval_s: float = 0.005) -> bool:  # type: ignore[no-untyped-def]
+    """Poll `predicate` until true or timeout; returns its last truth value."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if predicate():
+            return True
+        if time.monotonic() > deadline:
+            return bool(predicate())
+        time.sleep(interval_s)

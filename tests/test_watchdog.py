@@ -1,0 +1,275 @@
+"""The thread manager against real threads and real pseudo-terminals."""
+
+from __future__ import annotations
+
+import gc
+import os
+import threading
+import time
+import tracemalloc
+
+import pytest
+import serial
+from conftest import wait_for
+
+from companion.clock import Clock
+from companion.params import ParamRegistry
+from companion.watchdog import (
+    EventKind,
+    ManagedThread,
+    ManagerCommand,
+    RestartType,
+    RuntimeContext,
+    ThreadManager,
+)
+
+
+class Ticker(ManagedThread):
+    """A timer-driven thread that can be told to misbehave in each of the three stall kinds."""
+
+    def __init__(self, name: str = "tick", thread_id: int = 1, period_ms: float = 5.0,
+                 watchdog_ms: int = 50) -> None:
+        super().__init__(name, thread_id=thread_id, period_ms=period_ms, watchdog_ms=watchdog_ms)
+        self.mode = "ok"  # ok | raise | pyloop | cblock | ptyblock
+        self.recovered = 0
+        self.setups = 0
+        self.cleanups = 0
+        self.port: serial.Serial | None = None
+        self.master_fd: int | None = None
+
+    def setup(self) -> None:
+        self.setups += 1
+        if self.mode == "ptyblock":
+            master, slave = os.openpty()
+            name = os.ttyname(slave)
+            os.close(slave)
+            self.master_fd = master
+            self.port = serial.serial_for_url(name, baudrate=115200, timeout=None)
+
+    def interrupt_io(self) -> None:
+        if self.port is not None:
+            self.port.cancel_read()
+
+    def cleanup(self) -> None:
+        self.cleanups += 1
+        if self.port is not None:
+            self.port.close()
+            self.port = None
+        if self.master_fd is not None:
+            os.close(self.master_fd)
+            self.master_fd = None
+
+    def recover(self) -> None:
+        self.recovered += 1
+
+    def step(self) -> bool | None:
+        if self.cycles < 3:
+            return True
+        if self.mode == "raise":
+            raise RuntimeError("sensor exploded")
+        if self.mode == "pyloop":
+            x = 0
+            while True:  # ignores the stop event on purpose
+                x += 1
+        if self.mode == "cblock":
+            time.sleep(1.0)  # inside C: an asynchronous exception cannot land here
+        if self.mode == "ptyblock" and self.port is not None:
+            self.port.read(1)  # nobody writes: blocks until the port is cancelled
+        return True
+
+
+def make_manager(*threads: ManagedThread, **params: int) -> ThreadManager:
+    ctx = RuntimeContext(clock=Clock(), params=ParamRegistry())
+    mgr = ThreadManager(ctx, threads)
+    ctx.params.set("MGR_WDG_GRAN_MS", 5)
+    ctx.params.set("MGR_SHUTDOWN_MS", 100)
+    for name, value in params.items():
+        ctx.params.set(name, value)
+    return mgr
+
+
+class RunInBackground:
+    """Runs manager.run() in a helper thread so the test can observe; stops it on exit."""
+
+    def __init__(self, mgr: ThreadManager) -> None:
+        self.mgr = mgr
+        self.thread = threading.Thread(target=self._run, name="test-manager")
+        self.reason: str | None = None
+
+    def _run(self) -> None:
+        self.reason = self.mgr.run()
+
+    def __enter__(self) -> RunInBackground:
+        self.mgr.start()
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.mgr.request_stop("test over")
+        self.thread.join(5)
+        self.mgr.shutdown()
+
+
+def events_of(q, kind: EventKind) -> list:  # type: ignore[no-untyped-def]
+    return [e for e in q.drain() if e.kind is kind]
+
+
+@pytest.mark.parametrize("mode,expect", [
+    ("ptyblock", EventKind.RESTARTED),
+    ("pyloop", EventKind.INTERRUPTED),
+    ("raise", EventKind.CRASH),
+])
+def test_stall_kinds_are_detected_and_restarted(mode: str, expect: EventKind) -> None:
+    t = Ticker(watchdog_ms=50)
+    t.mode = mode
+    mgr = make_manager(t)
+    events = mgr.subscribe_events(1024)
+    seen: list = []
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.restarts >= 2, 5.0), f"{mode}: restarts={t.restarts}"
+        seen = events.drain()
+    kinds = [e.kind for e in seen]
+    assert expect in kinds
+    assert EventKind.RESTARTED in kinds
+    assert t.recovered >= 2
+    # resources acquired and released in the main thread, as many times as set up
+    assert t.cleanups == t.setups
+    assert t.port is None and t.master_fd is None
+
+
+def test_stall_detected_within_two_watchdog_periods() -> None:
+    t = Ticker(watchdog_ms=100)
+    t.mode = "ptyblock"
+    mgr = make_manager(t)
+    events = mgr.subscribe_events(1024)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.cycles >= 3, 2.0)
+        stalled_at = time.monotonic()
+        assert wait_for(lambda: t.stalls >= 1, 2.0)
+        latency = time.monotonic() - stalled_at
+    assert latency <= 0.2 + 0.05, f"stall seen after {latency * 1000:.0f} ms"
+    assert any(e.kind is EventKind.STALL for e in events.drain())
+
+
+@pytest.mark.allow_leaks
+def test_thread_stuck_in_c_is_abandoned_and_replaced() -> None:
+    t = Ticker(watchdog_ms=50)
+    t.mode = "cblock"
+    mgr = make_manager(t)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.abandoned >= 1, 5.0)
+        t.mode = "ok"
+        before = t.cycles
+        assert wait_for(lambda: t.cycles > before + 5, 3.0), "replacement worker did not run"
+    assert t.restarts >= 1
+
+
+def test_intensity_exceeded_marks_failed_and_others_keep_running() -> None:
+    bad = Ticker("bad", 1, watchdog_ms=50)
+    bad.mode = "raise"
+    good = Ticker("good", 2, watchdog_ms=50)
+    mgr = make_manager(bad, good, MGR_RST_INTENS=3, MGR_RST_PER_S=30)
+    events = mgr.subscribe_events(1024)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: bad.failed, 5.0)
+        cycles = good.cycles
+        assert wait_for(lambda: good.cycles > cycles + 10, 2.0)
+        assert bad.restarts == 3
+        assert not good.failed and good.restarts == 0
+    failed = [e for e in events.drain() if e.kind is EventKind.FAILED]
+    assert len(failed) == 1 and failed[0].thread == "bad"
+
+
+def test_transient_exit_is_not_restarted_but_permanent_is() -> None:
+    class Once(ManagedThread):
+        def prologue(self) -> bool:
+            return False
+
+    transient = Once("once", thread_id=1, watchdog_ms=50)
+
+    class Forever(Once):
+        restart = RestartType.PERMANENT
+
+    permanent = Forever("forever", thread_id=2, watchdog_ms=50)
+    mgr = make_manager(transient, permanent, MGR_RST_INTENS=3)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: permanent.failed, 5.0)
+    assert transient.restarts == 0
+    assert permanent.restarts == 3
+
+
+def test_restart_command_and_enable_parameter() -> None:
+    t = Ticker(watchdog_ms=50)
+    mgr = make_manager(t)
+    replies: list[tuple[bool, str]] = []
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.cycles > 3, 2.0)
+        mgr.post(ManagerCommand("restart_thread", "tick", reply=lambda ok, r: replies.append((ok, r))))
+        mgr.post(ManagerCommand("restart_thread", "nope", reply=lambda ok, r: replies.append((ok, r))))
+        assert wait_for(lambda: len(replies) == 2, 2.0)
+        assert replies[0] == (True, "") and replies[1][0] is False and "nope" in replies[1][1]
+        assert t.restarts == 1
+        mgr.ctx.params.set("TICK_ENABLE", 0)
+        assert wait_for(lambda: t._worker is None and not t.running, 2.0)
+        cycles = t.cycles
+        time.sleep(0.1)  # nothing to wait for: checking that nothing happens
+        assert t.cycles == cycles
+        mgr.ctx.params.set("TICK_ENABLE", 1)
+        assert wait_for(lambda: t.cycles > cycles + 3, 2.0)
+
+
+def test_programmed_execution_time_ends_the_run() -> None:
+    t = Ticker(watchdog_ms=50)
+    mgr = make_manager(t, MGR_EXEC_TIME_S=1)
+    started = time.monotonic()
+    mgr.start()
+    reason = mgr.run()
+    mgr.shutdown()
+    elapsed = time.monotonic() - started
+    assert reason == "duration"
+    assert 0.95 <= elapsed < 1.5
+    assert not t.running and t.cleanups == t.setups
+
+
+def test_timer_thread_keeps_absolute_deadlines() -> None:
+    t = Ticker(period_ms=10.0, watchdog_ms=200)
+    mgr = make_manager(t)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.cycles >= 60, 3.0)
+        start_cycles, start = t.cycles, time.monotonic()
+        assert wait_for(lambda: t.cycles >= start_cycles + 50, 3.0)
+        elapsed = time.monotonic() - start
+    # 50 cycles of 10 ms: drift-free scheduling keeps the mean period at 10 ms
+    assert 0.45 < elapsed < 0.56
+    st = t.status()
+    assert abs(st.measured_rate_hz - 100.0) < 5.0
+
+
+def test_hundred_forced_restarts_leak_nothing() -> None:
+    t = Ticker(watchdog_ms=20)
+    t.mode = "ptyblock"
+    mgr = make_manager(t, MGR_RST_INTENS=100_000, MGR_WDG_GRAN_MS=2)
+    gc.collect()
+    fds_before = len(os.listdir("/proc/self/fd"))
+    tracemalloc.start()
+    with RunInBackground(mgr):
+        assert wait_for(lambda: t.restarts >= 10, 10.0)
+        gc.collect()
+        snap_10 = tracemalloc.take_snapshot()
+        assert wait_for(lambda: t.restarts >= 100, 30.0)
+        gc.collect()
+        snap_100 = tracemalloc.take_snapshot()
+        threads_running = [th for th in threading.enumerate() if th.name.startswith("managed-")]
+        assert len(threads_running) <= 1
+    tracemalloc.stop()
+    assert t.abandoned == 0
+    assert len(os.listdir("/proc/self/fd")) == fds_before
+    # Memory allocated by the runtime's own code (pytest keeps every log record it captures,
+    # so the process total is not the runtime's): 90 restarts, well under 200 B per restart.
+    only_runtime = [tracemalloc.Filter(True, "*/companion/*")]
+    growth = sum(
+        d.size_diff
+        for d in snap_100.filter_traces(only_runtime).compare_to(
+            snap_10.filter_traces(only_runtime), "filename")
+    )
+    assert growth < 18_000, f"runtime memory grew {growth} bytes over 90 restarts"
