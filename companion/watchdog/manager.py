@@ -98,16 +98,29 @@ class ThreadManager:
         self._seen_cycles: dict[str, int] = {}
         self._seen_beats: dict[str, int] = {}
         self._silent: dict[str, bool] = {}
-        self._restart_times: dict[str, deque[float]] = {t.name: deque() for t in self.threads}
+        self._restart_times: dict[str, deque[float]] = {}
         self._abandoned_workers: list[threading.Thread] = []
         self._started = False
         self.on_tick: list[Callable[[], None]] = []  # called every wake, in the main thread
         ctx.params.declare_all(MANAGER_PARAMS)
         for t in self.threads:
-            t.ctx = ctx
-            t._manager = self
-            ctx.params.declare_all(t.base_params() + t.declare_params())
+            self._adopt(t)
         self._param_unsub = ctx.params.subscribe(self._on_param_changed)
+
+    def _adopt(self, t: ManagedThread) -> None:
+        t.ctx = self.ctx
+        t._manager = self
+        self.ctx.params.declare_all(t.base_params() + t.declare_params())
+        self._restart_times.setdefault(t.name, deque())
+
+    def add(self, t: ManagedThread) -> None:
+        """Add a thread after construction (bridges that need the manager); before start()."""
+        if self._started:
+            raise RuntimeError("threads must be added before the manager starts")
+        if self.find(t.name) is not None:
+            raise ValueError(f"a thread named {t.name!r} exists already")
+        self.threads.append(t)
+        self._adopt(t)
 
     # ---------------------------------------------------------------- public, any thread
     def post(self, command: ManagerCommand) -> bool:
@@ -231,6 +244,7 @@ class ThreadManager:
 
     def _start_thread(self, t: ManagedThread, *, first: bool = False) -> bool:
         try:
+            t._ensure_log()
             t.setup()
             t.initialised = True
         except Exception as exc:

@@ -20,10 +20,12 @@ import threading
 import time
 import traceback
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.clock import Clock
 from companion.params import ParamRegistry, ParamSpec, int_param
+from companion.state import VehicleState
 
 if TYPE_CHECKING:
     from companion.watchdog.manager import ThreadManager
@@ -55,7 +57,9 @@ class RuntimeContext:
     clock: Clock = field(default_factory=Clock)
     params: ParamRegistry = field(default_factory=ParamRegistry)
     logs: Any = None  # companion.logs.LogService when logging is on
+    state: VehicleState = field(default_factory=VehicleState)
     vehicle_id: int = 1
+    flight_dir: Path | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
 
@@ -157,6 +161,9 @@ class ManagedThread:
     def declare_params(self) -> list[ParamSpec]:
         """Extra parameters this thread owns (the base adds WDG_MS, MSG_MS, ENABLE)."""
         return []
+
+    def define_logs(self, tlog: Any) -> None:
+        """Declare this thread's log formats on its ThreadLog (`tlog.define(index, fmt, columns)`)."""
 
     def setup(self) -> None:
         """Acquire resources (ports, files). Runs in the main thread, in declaration order."""
@@ -275,6 +282,14 @@ class ManagedThread:
         self.overruns = 0
 
     # ---------------------------------------------------------------- manager side
+    def _ensure_log(self) -> None:
+        """Open this thread's log once per run; every (re)start then adds a Begin Data."""
+        logs = self.ctx.logs
+        if self.tlog is None and logs is not None:
+            text = "LOG_TEXT" in self.ctx.params and bool(self.ctx.params.get("LOG_TEXT"))
+            self.tlog = logs.open(self.name, text=text)
+            self.define_logs(self.tlog)
+
     def _start_worker(self) -> None:
         self._stop = threading.Event()
         self._params_dirty.clear()

@@ -1,0 +1,190 @@
+"""Runtime configuration: one TOML file, every value overridable on the command line.
+
+Settings are things that describe the installation (which port the IMU is on, where the ground
+station listens); parameters (companion.params) are things an operator tunes in flight. A
+setting changes only with a restart, which is why the two live apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A bad configuration file or override; the message names the file and the key."""
+
+
+@dataclass
+class DeviceConfig:
+    port: str = ""  # device path, pseudo-terminal, or any pyserial URL (loop://, socket://)
+    baud: int = 115200
+    enabled: bool = True
+
+
+@dataclass
+class DevicesConfig:
+    imu: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS0"))
+    gps: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS1"))
+    servo: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS2"))
+
+
+@dataclass
+class VehicleConfig:
+    id: int = 1
+
+
+@dataclass
+class LogsConfig:
+    dir: str = "flights"
+    enabled: bool = True
+
+
+@dataclass
+class ParamsConfig:
+    file: str = "params.parm"  # where parameter changes persist; relative to the working dir
+
+
+@dataclass
+class MavlinkConfig:
+    endpoints: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"])
+    key_file: str = ""  # MAVLink 2 signing key ("companion keys new"); empty = no signing
+    allow_unsigned_reads: bool = True
+
+
+@dataclass
+class LegacyConfig:
+    dest: str = "255.255.255.255:5501"
+    listen: int = 5500
+    allow: list[str] = field(default_factory=lambda: ["127.0.0.0/8"])
+    enabled: bool = True
+
+
+@dataclass
+class RerunConfig:
+    enabled: bool = False
+    save: str = ""
+
+
+@dataclass
+class Config:
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    devices: DevicesConfig = field(default_factory=DevicesConfig)
+    logs: LogsConfig = field(default_factory=LogsConfig)
+    params: ParamsConfig = field(default_factory=ParamsConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    legacy: LegacyConfig = field(default_factory=LegacyConfig)
+    rerun: RerunConfig = field(default_factory=RerunConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def load_config(path: Path | None) -> Config:
+    """Read a TOML file over the defaults; unknown keys and wrong types are errors, by name."""
+    cfg = Config()
+    if path is None:
+        return cfg
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    _merge(cfg, data, str(path), "")
+    return cfg
+
+
+def _merge(obj: Any, data: dict[str, Any], where: str, prefix: str) -> None:
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    for key, value in data.items():
+        dotted = f"{prefix}{key}"
+        if key not in fields:
+            raise ConfigError(f"{where}: unknown setting '{dotted}' (known: {', '.join(fields)})")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: '{dotted}' must be a table")
+            _merge(current, value, where, dotted + ".")
+        else:
+            setattr(obj, key, _coerce(value, current, where, dotted))
+
+
+def _coerce(value: Any, current: Any, where: str, dotted: str) -> Any:
+    expected = type(current)
+    if isinstance(current, bool):
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
+            return value.lower() in ("true", "1", "yes")
+    elif isinstance(current, int):
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, str):
+            try:
+                return int(value, 0)
+            except ValueError:
+                pass
+    elif isinstance(current, list):
+        if isinstance(value, list) and all(isinstance(v, str) for v in value):
+            return list(value)
+        if isinstance(value, str):
+            return [v for v in value.split(",") if v]
+    elif isinstance(current, str):
+        if isinstance(value, str):
+            return value
+    raise ConfigError(f"{where}: '{dotted}' must be {expected.__name__}, got {value!r}")
+
+
+def apply_override(cfg: Config, assignment: str) -> None:
+    """Apply one `section.key=value` override from the command line."""
+    if "=" not in assignment:
+        raise ConfigError(f"--set {assignment!r}: expected section.key=value")
+    dotted, value = assignment.split("=", 1)
+    parts = dotted.strip().split(".")
+    obj: Any = cfg
+    for i, part in enumerate(parts):
+        if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
+            raise ConfigError(f"--set: unknown setting '{'.'.join(parts[: i + 1])}'")
+        if i == len(parts) - 1:
+            setattr(obj, part, _coerce(value, getattr(obj, part), "--set", dotted))
+        else:
+            obj = getattr(obj, part)
+
+
+EXAMPLE_TOML = """\
+# companion configuration (all keys optional; these are the defaults)
+[vehicle]
+id = 1
+
+[devices.imu]
+port = "/dev/ttyS0"
+baud = 115200
+
+[devices.gps]
+port = "/dev/ttyS1"
+baud = 115200
+
+[devices.servo]
+port = "/dev/ttyS2"
+baud = 115200
+
+[logs]
+dir = "flights"
+
+[params]
+file = "params.parm"
+
+[mavlink]
+endpoints = ["udpout:127.0.0.1:14550"]
+key_file = ""
+allow_unsigned_reads = true
+
+[legacy]
+dest = "255.255.255.255:5501"
+listen = 5500
+allow = ["127.0.0.0/8"]
+"""

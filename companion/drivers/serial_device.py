@@ -1,0 +1,179 @@
+"""Base class of every serial-device driver thread: owns the port, reconnects, counts errors.
+
+A driver subclass only decodes and encodes frames (`on_bytes`); everything about the port lives
+here, as python-can's BusABC does for CAN interfaces. Ports are opened with
+`serial.serial_for_url`, so a device path, a pseudo-terminal or `loop://` all work.
+
+A port that disappears (USB unplugged, pseudo-terminal closed) is closed and reopened with
+exponential back-off; meanwhile `step` keeps returning False, which the watchdog reports as a
+silent device rather than restarting the thread, because a restart cannot bring a device back.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import serial
+
+from companion.watchdog.thread import ManagedThread
+
+log = logging.getLogger(__name__)
+
+REOPEN_MIN_S = 0.05
+REOPEN_MAX_S = 2.0
+
+
+@dataclass
+class PortCounters:
+    bytes_in: int = 0
+    bytes_out: int = 0
+    timeouts: int = 0
+    reconnects: int = 0
+    open_failures: int = 0
+    write_errors: int = 0
+
+
+class SerialDevice(ManagedThread):
+    """A managed thread bound to one serial port.
+
+    Device-paced by default (`period_ms` None): `step` blocks in a read of at most
+    `read_timeout_s`, so a stop request is seen within that time even if the device is silent.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        thread_id: int,
+        url: str,
+        baudrate: int = 115200,
+        read_timeout_s: float = 0.05,
+        read_size: int = 256,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(name, thread_id=thread_id, **kwargs)
+        self.url = url
+        self.baudrate = baudrate
+        self.read_timeout_s = read_timeout_s
+        self.read_size = read_size
+        self.port: serial.SerialBase | None = None
+        self.port_counters = PortCounters()
+        self._backoff_s = REOPEN_MIN_S
+        self._next_open_ns = 0
+        self._ever_opened = False
+        #: Called with every decoded item (replay tools, tests); None in flight.
+        self.item_sink: Callable[[object], None] | None = None
+
+    # ---------------------------------------------------------------- port handling
+    def _open(self) -> bool:
+        try:
+            port = serial.serial_for_url(
+                self.url, baudrate=self.baudrate,
+                timeout=self.ctx.clock.to_host_s(self.read_timeout_s),
+                write_timeout=0.5, exclusive=None,
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            self.port_counters.open_failures += 1
+            if self.port_counters.open_failures in (1, 10, 100) or self.port_counters.open_failures % 1000 == 0:
+                log.warning("%s: cannot open %s: %s", self.name, self.url, exc)
+            self._next_open_ns = self.ctx.clock.monotonic_ns() + int(self._backoff_s * 1e9)
+            self._backoff_s = min(self._backoff_s * 2, REOPEN_MAX_S)
+            return False
+        if self._ever_opened:
+            self.port_counters.reconnects += 1
+            log.info("%s: reopened %s", self.name, self.url)
+        self._ever_opened = True
+        self._backoff_s = REOPEN_MIN_S
+        self.port = port
+        self.on_port_opened()
+        return True
+
+    def _drop_port(self, why: str) -> None:
+        log.warning("%s: port %s lost (%s); reopening with back-off", self.name, self.url, why)
+        port, self.port = self.port, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:
+                pass
+        self._next_open_ns = self.ctx.clock.monotonic_ns() + int(self._backoff_s * 1e9)
+
+    def setup(self) -> None:
+        # A missing device is not fatal: the worker keeps trying to open it.
+        self._backoff_s = REOPEN_MIN_S
+        self._next_open_ns = 0
+        self._open()
+
+    def interrupt_io(self) -> None:
+        port = self.port
+        if port is not None and hasattr(port, "cancel_read"):
+            try:
+                port.cancel_read()
+            except Exception:
+                pass
+
+    def cleanup(self) -> None:
+        port, self.port = self.port, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:
+                log.exception("%s: closing %s", self.name, self.url)
+
+    def ensure_port(self) -> serial.SerialBase | None:
+        """The open port, reopening it when its back-off has elapsed; None while absent."""
+        if self.port is None:
+            if self.ctx.clock.monotonic_ns() < self._next_open_ns or not self._open():
+                # wait a little, but see a stop request at once
+                self.stop_event.wait(self.ctx.clock.to_host_s(min(self.read_timeout_s, 0.05)))
+                return None
+        return self.port
+
+    def read_chunk(self) -> bytes | None:
+        """Bytes available now (blocking up to the read timeout); None when the port is absent."""
+        port = self.ensure_port()
+        if port is None:
+            return None
+        try:
+            waiting = port.in_waiting
+            data = port.read(max(1, min(waiting, 4096)) if waiting else 1)
+            if data and not waiting:
+                # the first byte woke us: take whatever arrived with it
+                more = port.in_waiting
+                if more:
+                    data += port.read(min(more, 4096))
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            # TypeError/AttributeError: pyserial after a concurrent close
+            self._drop_port(str(exc) or type(exc).__name__)
+            return None
+        if not data:
+            self.port_counters.timeouts += 1
+        self.port_counters.bytes_in += len(data)
+        return bytes(data)
+
+    def write(self, data: bytes) -> bool:
+        port = self.port
+        if port is None:
+            return False
+        try:
+            port.write(data)
+        except serial.SerialTimeoutException:
+            self.port_counters.write_errors += 1
+            return False
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            self.port_counters.write_errors += 1
+            self._drop_port(str(exc) or type(exc).__name__)
+            return False
+        self.port_counters.bytes_out += len(data)
+        return True
+
+    # ---------------------------------------------------------------- for subclasses
+    def on_port_opened(self) -> None:
+        """Reset decoder state after a (re)open: half a frame from before is garbage now."""
+
+    def counters(self) -> dict[str, int]:
+        """All counters of this driver, for status and the replay summary."""
+        return dict(vars(self.port_counters))

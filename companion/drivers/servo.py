@@ -1,0 +1,114 @@
+"""Servo-board driver thread: every 20 ms send the computer's command, then read the pilot's.
+
+The computer sends first and then reads, as the board expects. The computer asks for automatic
+control only while the control law is enabled and producing fresh output; the board itself
+decides, from the pilot's mode switch, whether to obey, so the pilot can always take over.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from companion.drivers.serial_device import SerialDevice
+from companion.drivers.servo_protocol import (
+    CHANNELS,
+    PilotDecoder,
+    PilotFrame,
+    ServoCommand,
+    encode_command,
+)
+from companion.params import ParamSpec, int_param
+from companion.state import ControlOutput, ServoState
+
+FMT_EXCHANGE = 1
+CONTROL_FRESH_S = 0.1  # older control output is not sent: the board falls back to the pilot
+
+
+def surfaces_to_us(out: ControlOutput) -> tuple[int, ...]:
+    """Normalised surfaces to pulse widths: +-1 -> 1000..2000 us, throttle 0..1 -> 1000..2000."""
+
+    def centred(x: float) -> int:
+        return int(round(1500 + 500 * max(-1.0, min(1.0, x))))
+
+    throttle = int(round(1000 + 1000 * max(0.0, min(1.0, out.throttle))))
+    return (centred(out.aileron), centred(out.elevator), throttle, centred(out.rudder),
+            0, 0, 0, 0)
+
+
+class ServoDriver(SerialDevice):
+    def __init__(self, url: str, baudrate: int = 115200, *, name: str = "servo", thread_id: int = 3) -> None:
+        super().__init__(name, thread_id=thread_id, url=url, baudrate=baudrate, period_ms=20.0,
+                         budget_ms=15.0, watchdog_ms=200, message_ms=1000, read_timeout_s=0.005)
+        self.decoder = PilotDecoder()
+        self.seq = 0
+        self.answer_timeout_s = 0.015
+        self.missed_answers = 0
+        self.match_seq = True  # replaying a capture: accept answers to commands never sent
+
+    def declare_params(self) -> list[ParamSpec]:
+        return [int_param(f"{self.param_prefix}_ANS_MS", 15, 1, 19, "ms",
+                          "How long to wait for the board's pilot frame after each command.")]
+
+    def define_logs(self, tlog: Any) -> None:
+        cols = ([f"pilot{i}_us" for i in range(1, 9)] + [f"cmd{i}_us" for i in range(1, 9)]
+                + ["seq", "auto_requested", "auto_engaged", "failsafe", "avionics_batt",
+                   "servo_batt"])
+        tlog.define(FMT_EXCHANGE, ",".join(["%hu"] * 16) + ",%hhu,%hhu,%hhu,%hhu,%hhu,%hhu", cols)
+
+    def prologue(self) -> bool:
+        self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
+        return True
+
+    def on_params_changed(self) -> None:
+        self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
+
+    def on_port_opened(self) -> None:
+        self.decoder.reset()
+
+    def recover(self) -> None:
+        self.decoder.reset()
+
+    def _command(self) -> ServoCommand:
+        now_ns = self.ctx.clock.realtime_ns()
+        out = self.ctx.state.control.read()
+        if out is not None and out.enabled and (now_ns - out.t_ns) < CONTROL_FRESH_S * 1e9:
+            return ServoCommand(self.seq, True, surfaces_to_us(out))
+        return ServoCommand(self.seq, False, (0,) * CHANNELS)
+
+    def step(self) -> bool:
+        self.seq = (self.seq + 1) & 0xFF
+        cmd = self._command()
+        if self.ensure_port() is None or not self.write(encode_command(cmd)):
+            return False
+        clock = self.ctx.clock
+        deadline = time.monotonic() + clock.to_host_s(self.answer_timeout_s)
+        answer: PilotFrame | None = None
+        while answer is None and time.monotonic() < deadline and not self.stop_requested:
+            data = self.read_chunk()
+            if not data:
+                continue
+            for frame in self.decoder.feed(data, clock.realtime_ns()):
+                if self.item_sink is not None:
+                    self.item_sink(frame)
+                if frame.seq == cmd.seq or not self.match_seq:
+                    answer = frame
+        if answer is None:
+            self.missed_answers += 1
+            return False
+        t_ns = clock.realtime_ns()
+        self.ctx.state.servo.write(ServoState(
+            t_ns, cmd.seq, answer.channels_us, cmd.channels_us, cmd.auto_requested,
+            answer.auto_engaged, answer.failsafe, answer.avionics_batt_raw, answer.servo_batt_raw))
+        if self.tlog is not None:
+            self.tlog.log(FMT_EXCHANGE, *answer.channels_us, *cmd.channels_us, cmd.seq,
+                          int(cmd.auto_requested), int(answer.auto_engaged), int(answer.failsafe),
+                          answer.avionics_batt_raw, answer.servo_batt_raw, t_ns=t_ns)
+        return True
+
+    def counters(self) -> dict[str, int]:
+        out = super().counters()
+        out.update({k: getattr(self.decoder.counters, k) for k in
+                    ("frames_good", "bad_checksum", "bad_field", "resyncs", "bytes_discarded")})
+        out["missed_answers"] = self.missed_answers
+        return out

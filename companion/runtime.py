@@ -1,0 +1,258 @@
+"""Assembles one vehicle's runtime from its configuration and runs it until told to stop.
+
+The same assembly serves a real flight (`companion run`) and a simulated one (`companion sim`,
+which only points the device settings at the simulator's pseudo-terminals), so what is tested
+in simulation is what flies.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from companion import __version__
+from companion.clock import Clock
+from companion.config import Config
+from companion.params import FileIssue, ParamRegistry, ParamSpec, int_param
+from companion.state import VehicleState
+from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
+
+log = logging.getLogger(__name__)
+
+RUNTIME_PARAMS: list[ParamSpec] = [
+    int_param("LOG_TEXT", 0, 0, 1, "",
+              "1 writes CSV text logs (one file per format) instead of binary logs.", reboot=True),
+    int_param("SYS_VEHICLE_ID", 1, 1, 255, "",
+              "MAVLink system id and legacy vehicle id (from the configuration).", read_only=True),
+]
+
+
+def new_flight_dir(root: Path, *, suffix: str = "") -> Path:
+    """`root/<UTC timestamp>` (with a counter when two runs start in the same second)."""
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    root.mkdir(parents=True, exist_ok=True)
+    for n in range(1000):
+        name = stamp + suffix + (f"-{n}" if n else "")
+        path = root / name
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            continue
+    raise RuntimeError(f"cannot create a flight directory under {root}")
+
+
+@dataclass
+class RuntimeOptions:
+    """What the command line adds to the configuration for one run."""
+
+    mavlink: bool = True
+    legacy: bool = True
+    estimator: bool = True
+    control: bool = True
+    flight_dir: Path | None = None
+    clock: Clock = field(default_factory=Clock)
+    dry: bool = False  # build only (parameter listing, docs): no files, no sockets
+    extra_run_info: dict[str, Any] = field(default_factory=dict)
+
+
+def build_threads(cfg: Config) -> list[ManagedThread]:
+    """The device and computation threads of one vehicle, in start order."""
+    from companion.drivers.gps import GpsDriver
+    from companion.drivers.imu import ImuDriver
+    from companion.drivers.servo import ServoDriver
+
+    threads: list[ManagedThread] = []
+    dev = cfg.devices
+    if dev.imu.enabled:
+        threads.append(ImuDriver(dev.imu.port, dev.imu.baud))
+    if dev.gps.enabled:
+        threads.append(GpsDriver(dev.gps.port, dev.gps.baud))
+    if dev.servo.enabled:
+        threads.append(ServoDriver(dev.servo.port, dev.servo.baud))
+    return threads
+
+
+def build_computation(opts: RuntimeOptions) -> list[ManagedThread]:
+    threads: list[ManagedThread] = []
+    if opts.estimator:
+        try:
+            from companion.estimation.thread import EstimatorThread
+        except ImportError:
+            log.warning("estimator thread not available in this build")
+        else:
+            threads.append(EstimatorThread())
+    if opts.control:
+        try:
+            from companion.control import ControlThread
+        except ImportError:
+            log.warning("control thread not available in this build")
+        else:
+            threads.append(ControlThread())
+    return threads
+
+
+class Runtime:
+    """One vehicle: parameters, slots, logs, threads, manager and bridges."""
+
+    def __init__(self, cfg: Config, opts: RuntimeOptions | None = None) -> None:
+        self.cfg = cfg
+        self.opts = opts or RuntimeOptions()
+        clock = self.opts.clock
+        params = ParamRegistry()
+        params.declare_all(RUNTIME_PARAMS)
+        params.set("SYS_VEHICLE_ID", cfg.vehicle.id, force=True)
+        dry = self.opts.dry
+        if dry:
+            self.flight_dir = Path(cfg.logs.dir) / "dry-run"
+        else:
+            self.flight_dir = self.opts.flight_dir or new_flight_dir(Path(cfg.logs.dir))
+            self.flight_dir.mkdir(parents=True, exist_ok=True)
+        self.logs: Any = None
+        if cfg.logs.enabled and not dry:
+            from companion.logs import LogService
+
+            self.logs = LogService(self.flight_dir, clock_ns=clock.realtime_ns)
+        self.ctx = RuntimeContext(clock=clock, params=params, logs=self.logs,
+                                  state=VehicleState(), vehicle_id=cfg.vehicle.id,
+                                  flight_dir=self.flight_dir)
+        threads = build_threads(cfg) + build_computation(self.opts)
+        self.manager = ThreadManager(self.ctx, threads)
+        self.bridges: list[Any] = []
+        if self.opts.mavlink and cfg.mavlink.endpoints:
+            from gcs_bridge import MavlinkBridge
+
+            self.bridges.append(MavlinkBridge(
+                self.ctx, self.manager, endpoints=list(cfg.mavlink.endpoints),
+                key_file=cfg.mavlink.key_file or None,
+                allow_unsigned_reads=cfg.mavlink.allow_unsigned_reads))
+        if self.opts.legacy and cfg.legacy.enabled:
+            from legacy_protocol.adapter import LegacyAdapter
+
+            self.bridges.append(LegacyAdapter(
+                self.ctx, self.manager, dest=cfg.legacy.dest, listen_port=cfg.legacy.listen,
+                allow=list(cfg.legacy.allow)))
+        # every parameter is declared now: load the persisted values over the defaults
+        self.param_issues: list[FileIssue] = (
+            [] if dry else params.attach_file(Path(cfg.params.file)))
+        self._started = False
+
+    # ------------------------------------------------------------------ running
+    def run_info(self) -> dict[str, Any]:
+        return {
+            "software": {"name": "uav-companion", "version": __version__},
+            "started_utc": datetime.now(UTC).isoformat(),
+            "clock_scale": self.ctx.clock.scale,
+            "config": self.cfg.to_dict(),
+            "parameters": self.ctx.params.snapshot(),
+            "parameter_file_issues": [str(i) for i in self.param_issues],
+            "threads": [{"name": t.name, "id": t.thread_id} for t in self.manager.threads],
+            **self.opts.extra_run_info,
+        }
+
+    def start(self) -> None:
+        if self.logs is not None:
+            from companion.logs import write_run_json
+
+            self.logs.start()
+            write_run_json(self.flight_dir, self.run_info())
+        self.manager.start()
+        self._started = True
+
+    def run(self, duration_s: float | None = None, *, handle_signals: bool = True) -> str:
+        """Run until the duration, a signal, or a STOP command; always shuts down cleanly."""
+        with self._signals(handle_signals):
+            try:
+                if not self._started:
+                    self.start()
+                return self.manager.run(duration_s)
+            finally:
+                self.shutdown()
+
+    def shutdown(self) -> None:
+        self.manager.shutdown()
+        for bridge in self.bridges:
+            close = getattr(bridge, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except Exception:
+                    log.exception("closing bridge %s", type(bridge).__name__)
+        if self.logs is not None:
+            self.logs.close()
+            self.logs = None
+
+    @contextlib.contextmanager
+    def _signals(self, enabled: bool) -> Iterator[None]:
+        if not enabled or threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def handler(signum: int, _frame: object) -> None:
+            self.manager.request_stop(f"signal {signal.Signals(signum).name}")
+
+        old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    # ------------------------------------------------------------------ reporting
+    def summary(self) -> dict[str, Any]:
+        files = sorted(p for p in self.flight_dir.iterdir() if p.is_file())
+        return {
+            "flight_dir": str(self.flight_dir),
+            "stop_reason": self.manager.stop_reason,
+            "threads": [
+                {"name": s.name, "cycles": s.cycles, "restarts": s.restarts, "stalls": s.stalls,
+                 "failed": s.failed, "rate_hz": round(s.measured_rate_hz, 2),
+                 "mean_step_us": round(s.mean_step_us, 1), "missed_deadlines": s.missed_deadlines,
+                 "log_dropped": s.log_dropped}
+                for s in self.manager.thread_status()
+            ],
+            "files": {p.name: p.stat().st_size for p in files},
+        }
+
+
+def declared_registry(cfg: Config) -> ParamRegistry:
+    """Every parameter the runtime would declare for `cfg`, at its default, without running."""
+    rt = Runtime(cfg, RuntimeOptions(dry=True))
+    rt.manager.shutdown()
+    return rt.ctx.params
+
+
+def status_line(manager: ThreadManager) -> str:
+    parts = []
+    for s in manager.thread_status():
+        led = "".join(c if on else "." for c, on in (
+            ("I", s.initialised), ("R", s.running), ("P", s.in_periodic), ("A", s.alive)))
+        parts.append(f"{s.name}[{led}] {s.measured_rate_hz:5.1f}Hz r{s.restarts}")
+    st = manager.status()
+    return f"t={st.elapsed_ms / 1000:7.1f}s " + "  ".join(parts)
+
+
+def every(period_s: float, fn: Callable[[], None]) -> Callable[[], None]:
+    """Wrap `fn` so a manager tick hook calls it at most once per host period."""
+    last = [0.0]
+
+    def hook() -> None:
+        now = time.monotonic()
+        if now - last[0] >= period_s:
+            last[0] = now
+            fn()
+
+    return hook
+
+
+def dump_json(obj: Any) -> str:
+    return json.dumps(obj, indent=2, sort_keys=True, default=str)

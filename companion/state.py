@@ -1,0 +1,136 @@
+"""The vehicle's shared state: one data slot per producer, read by everyone downstream.
+
+Data flows one way: drivers -> slots -> estimator -> control -> servo. Bridges only read these
+slots (and post commands to the manager or set parameters). Every value is a frozen dataclass, so
+the reference a reader takes from a slot is a consistent snapshot. Units are SI; MAVLink scaling
+happens only in the bridge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from companion.sync import DataSlot, WaitableSlot
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One fast IMU frame, converted: body rates (rad/s) and specific force (m/s^2), x fwd y right z down."""
+
+    t_ns: int  # runtime realtime clock at reception
+    counter: int
+    rates_rad_s: Vec3
+    accel_m_s2: Vec3
+    gyro_ok: bool = True
+    accel_ok: bool = True
+
+
+@dataclass(frozen=True)
+class ImuSlowSample:
+    """The once-per-second high-resolution block."""
+
+    t_ns: int
+    rates_rad_s: Vec3
+    accel_m_s2: Vec3
+    temperature_c: float
+    bit_word: int
+
+
+@dataclass(frozen=True)
+class GpsFix:
+    """One GPS solution (one epoch); None where the receiver did not say."""
+
+    t_ns: int  # hand-off time, runtime clock
+    utc_s: float | None  # seconds since midnight UTC of the epoch
+    lat_deg: float | None
+    lon_deg: float | None
+    alt_m: float | None  # above mean sea level
+    fix: int  # 0 none, 1 GPS, 2 DGPS, 3 RTK
+    sats: int | None
+    hdop: float | None = None
+    pdop: float | None = None
+    vdop: float | None = None
+    tdop: float | None = None
+    speed_m_s: float | None = None
+    course_deg: float | None = None
+    vn_m_s: float | None = None
+    ve_m_s: float | None = None
+    vd_m_s: float | None = None
+    alt_std_m: float | None = None
+    h_std_m: float | None = None
+    latency_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ServoState:
+    """One servo-board exchange: what the pilot commanded and what the computer sent."""
+
+    t_ns: int
+    seq: int
+    pilot_us: tuple[int, ...]
+    computer_us: tuple[int, ...]
+    auto_requested: bool
+    auto_engaged: bool
+    failsafe: bool
+    avionics_batt_raw: int
+    servo_batt_raw: int
+
+
+@dataclass(frozen=True)
+class EstimatorState:
+    t_ns: int
+    quat_wxyz: tuple[float, float, float, float]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    pos_ned_m: Vec3  # from the origin below
+    vel_ned_m_s: Vec3
+    gyro_bias_rad_s: Vec3
+    accel_bias_m_s2: Vec3
+    origin_lat_deg: float | None
+    origin_lon_deg: float | None
+    origin_alt_m: float | None
+    cov_diag: tuple[float, ...] = ()
+    innovations: tuple[float, ...] = ()
+    rates_rad_s: Vec3 = (0.0, 0.0, 0.0)
+    aligned: bool = False
+    faults: int = 0
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """Normalised surface commands: aileron/elevator/rudder -1..1, throttle 0..1."""
+
+    t_ns: int
+    aileron: float
+    elevator: float
+    rudder: float
+    throttle: float
+    enabled: bool  # the control law is active (parameter on and pilot engaged automatic mode)
+    mode: str = "off"
+
+
+@dataclass(frozen=True)
+class HorizonMeasurement:
+    """Attitude from horizon detection on the ground, sent back to the aircraft."""
+
+    t_ns: int  # time of the video frame
+    roll_rad: float
+    pitch_rad: float
+    quality: float  # 0..1
+    source: str = "legacy"
+
+
+@dataclass
+class VehicleState:
+    """All slots of one vehicle. Producers write, everyone else reads."""
+
+    imu: WaitableSlot[ImuSample] = field(default_factory=WaitableSlot)
+    imu_slow: DataSlot[ImuSlowSample] = field(default_factory=DataSlot)
+    gps: WaitableSlot[GpsFix] = field(default_factory=WaitableSlot)
+    servo: DataSlot[ServoState] = field(default_factory=DataSlot)
+    estimator: WaitableSlot[EstimatorState] = field(default_factory=WaitableSlot)
+    control: DataSlot[ControlOutput] = field(default_factory=DataSlot)
+    horizon: DataSlot[HorizonMeasurement] = field(default_factory=DataSlot)
