@@ -13,12 +13,19 @@ import time
 
 
 class Clock:
-    def __init__(self, scale: float = 1.0) -> None:
+    def __init__(self, scale: float = 1.0, epoch: tuple[int, int] | None = None) -> None:
+        """`epoch` = (monotonic ns, realtime ns) at which both clocks agree with the host's;
+        processes that share it (the simulator and the runtime) share one timeline."""
         if scale <= 0:
             raise ValueError(f"clock scale must be positive, got {scale}")
         self.scale = scale
-        self._mono0 = time.monotonic_ns()
-        self._real0 = time.time_ns()
+        if epoch is None:
+            epoch = (time.monotonic_ns(), time.time_ns())
+        self._mono0, self._real0 = epoch
+
+    @property
+    def epoch(self) -> tuple[int, int]:
+        return self._mono0, self._real0
 
     def monotonic_ns(self) -> int:
         """Scaled monotonic time in ns (starts at the machine's monotonic time at creation)."""

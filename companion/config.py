@@ -59,6 +59,7 @@ class MavlinkConfig:
 class LegacyConfig:
     dest: str = "255.255.255.255:5501"
     listen: int = 5500
+    bind: str = "0.0.0.0"  # address the command socket listens on
     allow: list[str] = field(default_factory=lambda: ["127.0.0.0/8"])
     enabled: bool = True
 
@@ -186,5 +187,6 @@ allow_unsigned_reads = true
 [legacy]
 dest = "255.255.255.255:5501"
 listen = 5500
+bind = "0.0.0.0"
 allow = ["127.0.0.0/8"]
 """

@@ -140,7 +140,7 @@ class Runtime:
 
             self.bridges.append(LegacyAdapter(
                 self.ctx, self.manager, dest=cfg.legacy.dest, listen_port=cfg.legacy.listen,
-                allow=list(cfg.legacy.allow)))
+                allow=list(cfg.legacy.allow), bind_host=cfg.legacy.bind))
         # every parameter is declared now: load the persisted values over the defaults
         self.param_issues: list[FileIssue] = (
             [] if dry else params.attach_file(Path(cfg.params.file)))

@@ -1,0 +1,60 @@
+"""Generate docs/parameters.md from the parameter metadata declared in the code.
+
+Run `python -m companion.docgen docs/parameters.md` (or `make docs`); a test checks the committed
+file is current, so the documentation can never drift from the code.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from companion.config import Config
+from companion.params import ParamRegistry, format_value
+
+
+def render(reg: ParamRegistry) -> str:
+    lines = [
+        "# Parameters",
+        "",
+        "Generated from the metadata next to the code that owns each parameter "
+        "(`python -m companion.docgen docs/parameters.md`); do not edit by hand.",
+        "",
+        "Every parameter is an int32 or a float32 (the two types every MAVLink ground station "
+        "handles), has a name of at most 16 characters, and is visible and settable from "
+        "QGroundControl, MAVProxy, MAVSDK, pymavlink, the legacy monitor and "
+        "`companion params`. Changes are validated, applied to the running threads at once, "
+        "and persisted atomically to the parameter file.",
+        "",
+    ]
+    groups: dict[str, list] = {}
+    for spec in reg.specs():
+        groups.setdefault(spec.group, []).append(spec)
+    for group, specs in groups.items():
+        lines += [f"## {group}", "", "| name | type | default | min | max | unit | notes | description |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for s in specs:
+            notes = ", ".join(n for n, on in (("read-only", s.read_only),
+                                                ("reboot", s.reboot_required)) if on)
+            lines.append(
+                f"| `{s.name}` | {s.ptype.value} | {format_value(s.ptype, s.default)} | "
+                f"{format_value(s.ptype, s.min)} | {format_value(s.ptype, s.max)} | {s.unit} | "
+                f"{notes} | {s.description} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from companion.runtime import declared_registry
+
+    args = sys.argv[1:] if argv is None else argv
+    text = render(declared_registry(Config()))
+    if args:
+        Path(args[0]).write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

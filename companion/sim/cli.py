@@ -1,0 +1,112 @@
+"""`companion sim`: a simulated flight with every part of the runtime running."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from companion.cli import config_from_args, print_summary
+    from companion.runtime import every, status_line
+    from companion.sim.runner import FAST_SCALE, SimError, SimOptions, run_fleet, run_sim
+    from companion.sim.scenarios import SCENARIOS
+
+    if args.scenario not in SCENARIOS:
+        print(f"companion sim: unknown scenario {args.scenario!r} ({', '.join(SCENARIOS)})",
+              file=sys.stderr)
+        return 2
+    if args.vehicles > 1:
+        argv = [a for a in sys.argv[1:]]
+        base = _strip(argv, ("--vehicles",), takes_value=True)
+        return run_fleet(base, args.vehicles, args.legacy_listen or 5500)
+    cfg = config_from_args(args)
+    if not args.legacy_dest and not _configured(args, "legacy.dest"):
+        # a simulation stays on this machine: no broadcast onto the network
+        cfg.legacy.dest = "127.0.0.1:5501"
+    if not _configured(args, "legacy.bind"):
+        cfg.legacy.bind = "127.0.0.1"
+    scale = args.speed if args.speed else (FAST_SCALE if args.fast else 1.0)
+    sim = SimOptions(scenario=args.scenario, seed=args.seed + args.seed_offset,
+                     aircraft=args.aircraft, scale=scale,
+                     wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
+                     gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
+                     faults=args.fault, vanish=args.vanish, auto_switch_s=args.auto_switch,
+                     no_noise=args.no_noise)
+
+    def live(rt: object) -> None:
+        if sys.stderr.isatty() and args.verbose == 0:
+            mgr = rt.manager  # type: ignore[attr-defined]
+            mgr.on_tick.append(every(1.0, lambda: print(
+                "\r" + status_line(mgr)[:160], end="", file=sys.stderr, flush=True)))
+
+    try:
+        summary = run_sim(cfg, sim, args.duration, on_runtime=live)
+    except SimError as exc:
+        print(f"companion sim: {exc}", file=sys.stderr)
+        return 1
+    if sys.stderr.isatty():
+        print(file=sys.stderr)
+    print_summary(summary, args.json)
+    return 0
+
+
+def _configured(args: argparse.Namespace, key: str) -> bool:
+    """Whether the user set `key` in the configuration file or with --set."""
+    if any(o.split("=", 1)[0].strip() == key for o in args.overrides):
+        return True
+    if args.config is None:
+        return False
+    import tomllib
+
+    try:
+        data = tomllib.loads(args.config.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+    section, _, name = key.partition(".")
+    return name in data.get(section, {})
+
+
+def _strip(argv: list[str], names: tuple[str, ...], *, takes_value: bool) -> list[str]:
+    out: list[str] = []
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a in names:
+            skip = takes_value
+            continue
+        if any(a.startswith(n + "=") for n in names):
+            continue
+        out.append(a)
+    return out
+
+
+def add_commands(sub: argparse._SubParsersAction,
+                 add_runtime_arguments: Callable[[argparse.ArgumentParser], None]) -> None:
+    p = sub.add_parser("sim", help="fly a simulated aircraft (JSBSim) with every thread running")
+    add_runtime_arguments(p)
+    p.add_argument("--scenario", default="mixed",
+                   help="level, turns, climb, aerobatic, mixed (default), auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed-offset", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--aircraft", default="c172p", help="JSBSim model: c172p (default) or j3cub")
+    p.add_argument("--vehicles", type=int, default=1, help="fly K aircraft (ids 1..K)")
+    speed = p.add_mutually_exclusive_group()
+    speed.add_argument("--realtime", action="store_true", help="real time (default)")
+    speed.add_argument("--fast", action="store_true", help="5x faster than real time")
+    speed.add_argument("--speed", type=float, help="any time scale, e.g. 2.5")
+    p.add_argument("--wind", type=float, nargs=3, metavar=("N", "E", "D"),
+                   help="steady wind, m/s (NED: the direction it blows towards)")
+    p.add_argument("--gps-latency", type=float, default=0.05, metavar="S")
+    p.add_argument("--gps-ashtech", action="store_true", help="add $PASHR,POS sentences")
+    p.add_argument("--fault", action="append", default=[], metavar="DEV:SPEC",
+                   help="inject faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,silence=30-32")
+    p.add_argument("--vanish", action="append", default=[], metavar="DEV:START:DURATION",
+                   help="make a device's port disappear and return")
+    p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
+                   help="auto scenario: when the pilot engages automatic mode")
+    p.add_argument("--no-noise", action="store_true", help="perfect IMU (no noise or bias)")
+    p.set_defaults(func=cmd_sim)

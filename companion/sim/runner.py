@@ -1,0 +1,152 @@
+"""`companion sim`: start the simulated world in its own process and fly the runtime against it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from companion.clock import Clock
+from companion.config import Config
+from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+
+log = logging.getLogger(__name__)
+
+FAST_SCALE = 5.0
+READY_TIMEOUT_S = 60.0
+
+
+class SimError(RuntimeError):
+    """The simulated world could not start or died."""
+
+
+@dataclass
+class SimOptions:
+    scenario: str = "mixed"
+    seed: int = 0
+    aircraft: str = "c172p"
+    scale: float = 1.0
+    wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gps_latency_s: float = 0.05
+    gps_ashtech: bool = False
+    faults: list[str] = field(default_factory=list)
+    vanish: list[str] = field(default_factory=list)
+    auto_switch_s: float = 20.0
+    no_noise: bool = False
+
+
+class WorldProcess:
+    """The simulator subprocess: started, read for READY, stopped with SIGTERM, STATS collected."""
+
+    def __init__(self, opts: SimOptions, clock: Clock, device_dir: Path, flight_dir: Path,
+                 duration_s: float | None) -> None:
+        mono0, real0 = clock.epoch
+        cmd = [sys.executable, "-m", "companion.sim.world", "--scenario", opts.scenario,
+               "--seed", str(opts.seed), "--aircraft", opts.aircraft, "--scale", str(clock.scale),
+               "--epoch", str(mono0), str(real0), "--device-dir", str(device_dir),
+               "--flight-dir", str(flight_dir), "--gps-latency", str(opts.gps_latency_s),
+               "--auto-switch", str(opts.auto_switch_s),
+               "--wind", *(str(w) for w in opts.wind_ned_m_s)]
+        if duration_s:
+            cmd += ["--duration", str(duration_s + 5.0)]  # outlive the runtime, never starve it
+        if opts.gps_ashtech:
+            cmd.append("--gps-ashtech")
+        if opts.no_noise:
+            cmd.append("--no-noise")
+        for f in opts.faults:
+            cmd += ["--fault", f]
+        for v in opts.vanish:
+            cmd += ["--vanish", v]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                                     text=True)
+        self.stats: dict[str, Any] = {}
+        self.devices = self._wait_ready()
+
+    def _wait_ready(self) -> dict[str, str]:
+        assert self.proc.stdout is not None
+        result: dict[str, Any] = {}
+        done = threading.Event()
+
+        def reader() -> None:
+            assert self.proc.stdout is not None
+            line = self.proc.stdout.readline()
+            if line.startswith("READY "):
+                result["devices"] = json.loads(line[6:])
+            done.set()
+
+        t = threading.Thread(target=reader, daemon=True)
+        t.start()
+        if not done.wait(READY_TIMEOUT_S) or "devices" not in result:
+            self.stop()
+            raise SimError(f"the simulator did not start (exit code {self.proc.returncode})")
+        return dict(result["devices"])
+
+    def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, _ = self.proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        for line in (out or "").splitlines():
+            if line.startswith("STATS "):
+                self.stats = json.loads(line[6:])
+        return self.stats
+
+
+def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
+            *, handle_signals: bool = True, on_runtime: Any = None) -> dict[str, Any]:
+    """Fly one simulated vehicle; returns the run summary (runtime and simulator figures)."""
+    clock = Clock(sim.scale)
+    flight_dir = new_flight_dir(Path(cfg.logs.dir),
+                                suffix=f"-v{cfg.vehicle.id}" if cfg.vehicle.id != 1 else "")
+    with tempfile.TemporaryDirectory(prefix="companion-sim-") as tmp:
+        device_dir = Path(tmp)
+        world = WorldProcess(sim, clock, device_dir, flight_dir, duration_s)
+        try:
+            cfg.devices.imu.port = world.devices["imu"]
+            cfg.devices.gps.port = world.devices["gps"]
+            cfg.devices.servo.port = world.devices["servo"]
+            rt = Runtime(cfg, RuntimeOptions(
+                clock=clock, flight_dir=flight_dir,
+                extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))
+            if on_runtime is not None:
+                on_runtime(rt)
+            t0 = time.monotonic()
+            rt.run(duration_s, handle_signals=handle_signals)
+            host_s = time.monotonic() - t0
+        finally:
+            stats = world.stop()
+    summary = rt.summary()
+    summary["simulator"] = stats
+    summary["host_seconds"] = round(host_s, 2)
+    summary["clock_scale"] = clock.scale
+    return summary
+
+
+def run_fleet(argv_base: list[str], vehicles: int, legacy_listen: int) -> int:
+    """`--vehicles K`: K independent `companion sim` processes, vehicle ids 1..K."""
+    procs = []
+    for i in range(1, vehicles + 1):
+        cmd = [sys.executable, "-m", "companion", *argv_base, "--vehicle-id", str(i),
+               "--legacy-listen", str(legacy_listen + i - 1),
+               "--params-file", f"params-v{i}.parm", "--seed-offset", str(i - 1)]
+        procs.append(subprocess.Popen(cmd, env={**os.environ}))
+    codes = []
+    try:
+        codes = [p.wait() for p in procs]
+    except KeyboardInterrupt:
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        codes = [p.wait() for p in procs]
+    return max(codes) if codes else 0

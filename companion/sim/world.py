@@ -1,0 +1,394 @@
+"""The simulated world: JSBSim flight, a scripted pilot and three devices on pseudo-terminals.
+
+Runs as its own process (`python -m companion.sim.world ...`, started by `companion sim`), so
+the runtime under test is exactly the flight program: it opens the device paths it is given and
+reads bytes, without knowing they come from a simulator. Both processes share one `Clock`
+epoch and scale, so ground truth and the runtime's logs share a timeline, also faster than
+real time.
+
+Device paths are stable symlinks (`<device dir>/imu` ...) to the current pseudo-terminal, so a
+port can vanish and come back (a fault the drivers must survive) under the same name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import select
+import signal
+import sys
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.clock import Clock
+from companion.sim.devices import (
+    FaultInjector,
+    FaultPlan,
+    GpsSim,
+    GpsSimConfig,
+    ImuSim,
+    ImuSimConfig,
+    ServoBoardSim,
+)
+from companion.sim.flight import FlightModel, FlightModelError
+from companion.sim.scenarios import Pilot, surfaces_from_channels
+
+log = logging.getLogger(__name__)
+
+IMU_DT_S = 0.01
+GPS_EVERY = 10  # IMU ticks per GPS epoch
+PILOT_EVERY = 2  # IMU ticks per servo-board frame (50 Hz)
+TRUTH_EVERY = 1
+DEVICES = ("imu", "gps", "servo")
+
+FMT_TRUTH = 1
+FMT_SURFACES = 2
+TRUTH_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_m",
+                 "vn_m_s", "ve_m_s", "vd_m_s", "p_rad_s", "q_rad_s", "r_rad_s",
+                 "ax_m_s2", "ay_m_s2", "az_m_s2", "lat_deg", "lon_deg", "alt_m",
+                 "airspeed_m_s", "sim_time_s"]
+
+
+@dataclass
+class Vanish:
+    """A port that disappears at `start_s` (sim time) and returns `duration_s` later."""
+
+    device: str
+    start_s: float
+    duration_s: float
+    done: bool = False
+    gone: bool = False
+
+
+@dataclass
+class WorldOptions:
+    scenario: str = "mixed"
+    seed: int = 0
+    aircraft: str = "c172p"
+    wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    epoch: tuple[int, int] | None = None
+    device_dir: Path = Path(".")
+    flight_dir: Path | None = None
+    duration_s: float = 0.0  # 0: until signalled
+    gps_latency_s: float = 0.05
+    gps_ashtech: bool = False
+    faults: dict[str, FaultPlan] = field(default_factory=dict)
+    vanish: list[Vanish] = field(default_factory=list)
+    imu_noise: bool = True
+    auto_switch_s: float = 20.0
+
+
+class Pty:
+    """One pseudo-terminal pair whose slave path is published through a stable symlink."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.master = -1
+        self.slave = -1
+        self.dropped_bytes = 0
+        self.open()
+
+    def open(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no line discipline: bytes pass unchanged
+        os.set_blocking(master, False)
+        self.master, self.slave = master, slave
+        tmp = self.link.with_suffix(".tmp")
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        tmp.symlink_to(os.ttyname(slave))
+        os.replace(tmp, self.link)
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self.slave = -1
+        try:
+            self.link.unlink()
+        except FileNotFoundError:
+            pass
+
+    def write(self, data: bytes) -> None:
+        if self.master < 0 or not data:
+            return
+        try:
+            n = os.write(self.master, data)
+        except BlockingIOError:
+            n = 0
+        except OSError:
+            n = 0
+        self.dropped_bytes += len(data) - n  # a reader that does not keep up loses bytes, as on a UART
+
+
+class World:
+    def __init__(self, opts: WorldOptions) -> None:
+        self.opts = opts
+        self.clock = Clock(opts.scale, opts.epoch)
+        rng = np.random.default_rng(opts.seed)
+        self.model = FlightModel(opts.aircraft, wind_ned_m_s=opts.wind_ned_m_s, seed=opts.seed)
+        self.pilot = Pilot(opts.scenario, opts.seed, aircraft=opts.aircraft,
+                           auto_switch_s=opts.auto_switch_s)
+        imu_cfg = ImuSimConfig() if opts.imu_noise else ImuSimConfig(
+            gyro_noise_rad_s=0.0, accel_noise_m_s2=0.0, gyro_bias_sigma_rad_s=0.0,
+            accel_bias_sigma_m_s2=0.0, gyro_bias_walk_rad_s_sqrt_s=0.0,
+            accel_bias_walk_m_s2_sqrt_s=0.0)
+        self.imu = ImuSim(np.random.default_rng(rng.integers(2**63)), imu_cfg)
+        self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)),
+                          GpsSimConfig(ashtech_pos=opts.gps_ashtech))
+        self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
+        self.injectors = {dev: FaultInjector(plan, np.random.default_rng(rng.integers(2**63)))
+                          for dev, plan in opts.faults.items()}
+        opts.device_dir.mkdir(parents=True, exist_ok=True)
+        self.ptys = {dev: Pty(opts.device_dir / dev) for dev in DEVICES}
+        self._board_lock = threading.Lock()
+        self._stop = threading.Event()
+        self.t_s = 0.0
+        self.ticks = 0
+        self.gps_queue: list[tuple[float, bytes]] = []
+        self.logs: Any = None
+        self.tlog: Any = None
+        self.late_ticks = 0
+        self.start_utc_s = 12 * 3600.0
+
+    # ------------------------------------------------------------------ servo board (own thread)
+    def _board_loop(self) -> None:
+        """Answer each command frame at once, as the real board does, from the latest sticks."""
+        while not self._stop.is_set():
+            pty = self.ptys["servo"]
+            fd = pty.master
+            if fd < 0:
+                self._stop.wait(0.01)
+                continue
+            try:
+                r, _, _ = select.select([fd], [], [], 0.05)
+            except (OSError, ValueError):
+                continue
+            if not r:
+                continue
+            try:
+                data = os.read(fd, 4096)
+            except (BlockingIOError, OSError):
+                continue
+            with self._board_lock:
+                answer = self.board.feed(data, self.t_s)
+            answer = self._inject("servo", answer)
+            pty.write(answer)
+
+    def _inject(self, dev: str, data: bytes) -> bytes:
+        inj = self.injectors.get(dev)
+        return inj.apply(data, self.t_s) if inj is not None else data
+
+    # ------------------------------------------------------------------ truth log
+    def _open_truth_log(self) -> None:
+        if self.opts.flight_dir is None:
+            return
+        from companion.logs import LogService
+
+        self.logs = LogService(self.opts.flight_dir, clock_ns=self.clock.realtime_ns)
+        self.logs.start()
+        self.tlog = self.logs.open("truth")
+        self.tlog.define(FMT_TRUTH, ",".join(["%.6f"] * 15 + ["%.9lf", "%.9lf", "%.3f", "%.3f",
+                                                                "%.3lf"]), TRUTH_COLUMNS)
+        self.tlog.define(FMT_SURFACES, ",".join(["%hu"] * 8) + ",%hhu,%.4f,%.4f,%.4f,%.4f",
+                         [f"servo{i}_us" for i in range(1, 9)]
+                         + ["auto_active", "aileron", "elevator", "rudder", "throttle"])
+        self.tlog.begin()
+
+    # ------------------------------------------------------------------ vanishing ports
+    def _vanish_faults(self) -> None:
+        for v in self.opts.vanish:
+            if v.done:
+                continue
+            if not v.gone and self.t_s >= v.start_s:
+                log.info("fault: %s port vanishes at %.2f s", v.device, self.t_s)
+                self.ptys[v.device].close()
+                v.gone = True
+            elif v.gone and self.t_s >= v.start_s + v.duration_s:
+                log.info("fault: %s port returns at %.2f s", v.device, self.t_s)
+                self.ptys[v.device].open()
+                v.done = True
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> dict[str, Any]:
+        self._open_truth_log()
+        board = threading.Thread(target=self._board_loop, name="servo-board", daemon=True)
+        board.start()
+        clock = self.clock
+        period_ns = int(IMU_DT_S * 1e9)
+        next_ns = clock.monotonic_ns()
+        t0_host = time.monotonic()
+        stop_reason = "signal"
+        model = self.model
+        try:
+            while not self._stop.is_set():
+                if self.opts.duration_s and self.t_s >= self.opts.duration_s:
+                    stop_reason = "duration"
+                    break
+                self._tick(model)
+                next_ns += period_ns
+                now = clock.monotonic_ns()
+                if now > next_ns + period_ns:
+                    self.late_ticks += 1
+                if clock.wait_until_ns(next_ns, self._stop):
+                    break
+        except FlightModelError as exc:
+            stop_reason = f"flight model: {exc}"
+            log.error("flight model stopped: %s", exc)
+        finally:
+            self._stop.set()
+            board.join(1.0)
+            if self.tlog is not None:
+                self.tlog.end()
+            if self.logs is not None:
+                self.logs.close()
+            for pty in self.ptys.values():
+                pty.close()
+        elapsed = time.monotonic() - t0_host
+        return {
+            "stop": stop_reason,
+            "sim_time_s": round(self.t_s, 3),
+            "real_time_factor": round(self.t_s / elapsed, 2) if elapsed > 0 else None,
+            "late_ticks": self.late_ticks,
+            "servo_answers": self.board.answered,
+            "dropped_bytes": {d: p.dropped_bytes for d, p in self.ptys.items()},
+            "faults": {d: vars(i.counts) if hasattr(i.counts, "__dict__") else
+                       {k: getattr(i.counts, k) for k in i.counts.__slots__}
+                       for d, i in self.injectors.items()},
+        }
+
+    def _tick(self, model: FlightModel) -> None:
+        truth = model.truth()
+        k = self.ticks
+        if k % PILOT_EVERY == 0:
+            sticks = self.pilot.channels_us(self.t_s, truth)
+            with self._board_lock:
+                self.board.set_pilot(sticks)
+        with self._board_lock:
+            effective = self.board.effective_channels_us(self.t_s)
+            auto = self.board.auto_active(self.t_s)
+        surfaces = surfaces_from_channels(effective)
+        model.set_controls(*surfaces)
+        model.step(IMU_DT_S)
+        truth = model.truth()
+        self.t_s = (k + 1) * IMU_DT_S
+        self.ticks = k + 1
+        self._vanish_faults()
+        frame = self.imu.frame((truth.p_rad_s, truth.q_rad_s, truth.r_rad_s),
+                               (truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2))
+        self.ptys["imu"].write(self._inject("imu", frame))
+        if self.ticks % GPS_EVERY == 0:
+            epoch = self.gps.epoch(self.start_utc_s + self.t_s, truth.lat_deg, truth.lon_deg,
+                                   truth.alt_m, truth.vn_m_s, truth.ve_m_s, truth.vd_m_s)
+            self.gps_queue.append((self.t_s + self.opts.gps_latency_s, epoch))
+        while self.gps_queue and self.gps_queue[0][0] <= self.t_s + 1e-9:
+            _, data = self.gps_queue.pop(0)
+            self.ptys["gps"].write(self._inject("gps", data))
+        if self.tlog is not None and self.ticks % TRUTH_EVERY == 0:
+            self.tlog.log(FMT_TRUTH, truth.roll_rad, truth.pitch_rad, truth.yaw_rad,
+                          truth.north_m, truth.east_m, truth.down_m, truth.vn_m_s, truth.ve_m_s,
+                          truth.vd_m_s, truth.p_rad_s, truth.q_rad_s, truth.r_rad_s,
+                          truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2, truth.lat_deg,
+                          truth.lon_deg, truth.alt_m, truth.airspeed_m_s, self.t_s)
+            if self.ticks % PILOT_EVERY == 0:
+                self.tlog.log(FMT_SURFACES, *effective, int(auto), *surfaces)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+def parse_fault(text: str) -> tuple[str, FaultPlan]:
+    """`DEV:key=value,...` with keys garbage, cut, badsum (probabilities) and silence=START-END."""
+    dev, _, spec = text.partition(":")
+    if dev not in DEVICES:
+        raise ValueError(f"--fault {text!r}: device must be one of {', '.join(DEVICES)}")
+    kwargs: dict[str, Any] = {}
+    silences: list[tuple[float, float]] = []
+    for item in filter(None, spec.split(",")):
+        key, _, value = item.partition("=")
+        if key == "garbage":
+            kwargs["garbage_prob"] = float(value)
+        elif key == "cut":
+            kwargs["cut_prob"] = float(value)
+        elif key == "badsum":
+            kwargs["bad_checksum_prob"] = float(value)
+        elif key == "silence":
+            a, _, b = value.partition("-")
+            silences.append((float(a), float(b)))
+        else:
+            raise ValueError(f"--fault {text!r}: unknown key {key!r} (garbage, cut, badsum, silence)")
+    return dev, FaultPlan(silence_s=tuple(silences), **kwargs)
+
+
+def parse_vanish(text: str) -> Vanish:
+    """`DEV:START:DURATION` in sim seconds."""
+    try:
+        dev, start, duration = text.split(":")
+        if dev not in DEVICES:
+            raise ValueError
+        return Vanish(dev, float(start), float(duration))
+    except ValueError:
+        raise ValueError(f"--vanish {text!r}: expected DEV:START_S:DURATION_S") from None
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="companion.sim.world", description=__doc__)
+    ap.add_argument("--scenario", default="mixed")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--aircraft", default="c172p")
+    ap.add_argument("--wind", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("N", "E", "D"))
+    ap.add_argument("--scale", type=float, default=1.0)
+    ap.add_argument("--epoch", type=int, nargs=2, metavar=("MONO_NS", "REAL_NS"))
+    ap.add_argument("--device-dir", type=Path, required=True)
+    ap.add_argument("--flight-dir", type=Path)
+    ap.add_argument("--duration", type=float, default=0.0)
+    ap.add_argument("--gps-latency", type=float, default=0.05)
+    ap.add_argument("--gps-ashtech", action="store_true")
+    ap.add_argument("--fault", action="append", default=[])
+    ap.add_argument("--vanish", action="append", default=[])
+    ap.add_argument("--auto-switch", type=float, default=20.0)
+    ap.add_argument("--no-noise", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="sim: %(levelname)s %(message)s")
+    try:
+        faults = dict(parse_fault(f) for f in args.fault)
+        vanish = [parse_vanish(v) for v in args.vanish]
+    except ValueError as exc:
+        print(f"companion.sim.world: {exc}", file=sys.stderr)
+        return 2
+    opts = WorldOptions(
+        scenario=args.scenario, seed=args.seed, aircraft=args.aircraft,
+        wind_ned_m_s=tuple(args.wind), scale=args.scale,
+        epoch=tuple(args.epoch) if args.epoch else None, device_dir=args.device_dir,
+        flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
+        gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
+        auto_switch_s=args.auto_switch)
+    try:
+        world = World(opts)
+    except (FlightModelError, ValueError) as exc:
+        print(f"companion.sim.world: cannot start: {exc}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, lambda *_: world.stop())
+    signal.signal(signal.SIGINT, lambda *_: world.stop())
+    print("READY " + json.dumps({d: str(opts.device_dir / d) for d in DEVICES}), flush=True)
+    stats = world.run()
+    print("STATS " + json.dumps(stats), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

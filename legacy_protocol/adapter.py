@@ -1,0 +1,379 @@
+"""Aircraft side of the legacy UDP protocol: the thesis's network thread, rebuilt.
+
+Two managed threads share one UDP socket:
+- `legacy-rx` receives commands, drops what the allow-list refuses or what does not decode
+  (counted, never raised), and dispatches each command type to its own bounded queue, as the
+  thesis's network thread did; HORIZON_ATTITUDE goes straight to a data slot, because only the
+  newest attitude matters.
+- `legacy-tx` is the only sender: thread data messages at each thread's message period
+  (`<THREAD>_MSG_MS`), one THREAD_STATUS per `MGR_STATUS_MS` in rotation, MANAGER_STATUS every
+  `MGR_MSTAT_MS`, and the COMMAND_ACKs.
+The manager consumes the parameter queues in the main thread (a tick hook), so the legacy monitor
+and the MAVLink side change the very same parameters.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import math
+import socket
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from companion.params import ParamError
+from companion.state import HorizonMeasurement
+from companion.sync import MessageQueue
+from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, ThreadManager
+from legacy_protocol import codec
+from legacy_protocol.codec import AckResult, MsgType
+
+log = logging.getLogger(__name__)
+
+MAX_DATAGRAM = 2048
+
+
+def parse_hostport(text: str, default_port: int) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    try:
+        return host or "0.0.0.0", int(port)
+    except ValueError:
+        raise ValueError(f"expected HOST:PORT, got {text!r}") from None
+
+
+@dataclass
+class LegacyCounters:
+    received: int = 0
+    accepted: int = 0
+    refused_source: int = 0  # not in the allow-list: dropped
+    malformed: int = 0
+    unexpected_type: int = 0  # a message type where a command was expected
+    queue_full: int = 0
+    sent: int = 0
+    send_errors: int = 0
+
+
+@dataclass(frozen=True)
+class PendingCommand:
+    payload: Any
+    seq: int
+    addr: tuple[str, int]
+
+
+class _Rx(ManagedThread):
+    def __init__(self, adapter: LegacyAdapter) -> None:
+        super().__init__("legacy-rx", thread_id=0, watchdog_ms=2000, message_ms=1000,
+                         param_prefix="LEGRX")
+        self.adapter = adapter
+
+    def interrupt_io(self) -> None:
+        self.adapter.wake_socket()
+
+    def step(self) -> bool:
+        self.adapter.receive_once(timeout_s=0.1)
+        return True  # not periodic in nature: alive as long as it loops
+
+
+class _Tx(ManagedThread):
+    def __init__(self, adapter: LegacyAdapter) -> None:
+        super().__init__("legacy-tx", thread_id=0, period_ms=10.0, watchdog_ms=1000,
+                         message_ms=1000, param_prefix="LEGTX", budget_ms=5.0)
+        self.adapter = adapter
+
+    def step(self) -> bool:
+        self.adapter.send_due()
+        return True
+
+
+class LegacyAdapter:
+    """Owns the socket and the two threads; registers them with the manager."""
+
+    def __init__(self, ctx: RuntimeContext, manager: ThreadManager, *,
+                 dest: str = "255.255.255.255:5501", listen_port: int = 5500,
+                 allow: Iterable[str] = ("127.0.0.0/8",), bind_host: str = "0.0.0.0") -> None:
+        self.ctx = ctx
+        self.manager = manager
+        self.dest = parse_hostport(dest, codec.DEFAULT_MONITOR_PORT)
+        self.allow = [ipaddress.ip_network(a, strict=False) for a in allow]
+        self.counters = LegacyCounters()
+        self.queues: dict[int, MessageQueue[PendingCommand]] = {
+            int(t): MessageQueue(64) for t in (MsgType.SET_THREAD_PARAMS,
+                                               MsgType.SET_MANAGER_PARAMS, MsgType.STOP,
+                                               MsgType.RESTART_THREAD)}
+        self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]]] = MessageQueue(256)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        self.sock.bind((bind_host, listen_port))
+        self.listen_addr = self.sock.getsockname()
+        self.sock.settimeout(0.1)
+        self._seq = 0
+        self._next_due_ns: dict[str, int] = {}
+        self._status_index = 0
+        self.rx = _Rx(self)
+        self.tx = _Tx(self)
+        manager.add(self.rx)
+        manager.add(self.tx)
+        # ids for threads beyond the contract's five: the next free ones
+        used = {t.thread_id for t in manager.threads if 1 <= t.thread_id <= 5}
+        next_id = 6
+        for t in manager.threads:
+            if not 1 <= t.thread_id <= 255 or (t.thread_id > 5 and t.thread_id in used):
+                while next_id in used:
+                    next_id += 1
+                t.thread_id = next_id
+            used.add(t.thread_id)
+        manager.on_tick.append(self.process_commands)
+
+    # ------------------------------------------------------------------ receive side
+    def wake_socket(self) -> None:
+        """Unblock a recvfrom (used when the rx thread must stop): send ourselves a byte."""
+        try:
+            host, port = self.listen_addr
+            target = "127.0.0.1" if host == "0.0.0.0" else host
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                s.sendto(b"\x00", (target, port))
+        except OSError:
+            pass
+
+    def _allowed(self, host: str) -> bool:
+        try:
+            ip = ipaddress.ip_address(host)
+        except ValueError:
+            return False
+        return any(ip in net for net in self.allow)
+
+    def receive_once(self, timeout_s: float) -> None:
+        try:
+            data, addr = self.sock.recvfrom(MAX_DATAGRAM)
+        except (TimeoutError, BlockingIOError):
+            return
+        except OSError:
+            self.rx.stop_event.wait(timeout_s)  # socket closed during shutdown
+            return
+        self.handle_datagram(data, addr)
+
+    def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
+        c = self.counters
+        c.received += 1
+        if not self._allowed(addr[0]):
+            c.refused_source += 1
+            return
+        result = codec.decode(data)
+        if isinstance(result, codec.DecodeError):
+            c.malformed += 1
+            return
+        t = result.header.type_code
+        pending = PendingCommand(result.payload, result.header.seq, addr)
+        if isinstance(result.payload, codec.HorizonAttitude):
+            p = result.payload
+            if not all(math.isfinite(v) for v in (p.roll_rad, p.pitch_rad, p.quality)):
+                self._ack(pending, AckResult.BAD_VALUE)
+                return
+            self.ctx.state.horizon.write(HorizonMeasurement(
+                p.frame_t_ns, p.roll_rad, p.pitch_rad, max(0.0, min(1.0, p.quality)), "legacy"))
+            c.accepted += 1
+            self._ack(pending, AckResult.ACCEPTED)
+            return
+        queue = self.queues.get(t)
+        if queue is None:
+            c.unexpected_type += 1
+            return
+        if not queue.put(pending):
+            c.queue_full += 1
+            return
+        c.accepted += 1
+        self.manager.wake()
+
+    def _ack(self, cmd: PendingCommand, result: AckResult) -> None:
+        ack = codec.CommandAck(command_type=int(cmd.payload.TYPE), result=int(result),
+                               command_seq=cmd.seq)
+        self.acks.put((ack, cmd.addr))
+
+    # ------------------------------------------------------------------ main-thread consumer
+    def process_commands(self) -> None:
+        """Manager tick hook: apply queued commands in the main thread, one ACK each."""
+        for queue in self.queues.values():
+            while (cmd := queue.get_nowait()) is not None:
+                try:
+                    self._apply(cmd)
+                except Exception:  # a command must never take the manager down
+                    log.exception("legacy command failed")
+                    self._ack(cmd, AckResult.BAD_VALUE)
+
+    def _apply(self, cmd: PendingCommand) -> None:
+        p = cmd.payload
+        params = self.ctx.params
+        if isinstance(p, codec.SetThreadParams):
+            t = self.manager.find(p.thread_id)
+            if t is None:
+                self._ack(cmd, AckResult.UNKNOWN_THREAD)
+                return
+            changes = {}
+            if p.watchdog_period_ms != codec.UNCHANGED:
+                changes[f"{t.param_prefix}_WDG_MS"] = p.watchdog_period_ms
+            if p.message_period_ms != codec.UNCHANGED:
+                changes[f"{t.param_prefix}_MSG_MS"] = p.message_period_ms
+            gran = int(params.get("MGR_WDG_GRAN_MS"))
+            wdg = changes.get(f"{t.param_prefix}_WDG_MS")
+            if wdg is not None and wdg < gran:
+                self._ack(cmd, AckResult.BAD_VALUE)
+                return
+            self._set_all(cmd, changes)
+        elif isinstance(p, codec.SetManagerParams):
+            changes = {}
+            if p.execution_time_s != codec.UNCHANGED:
+                changes["MGR_EXEC_TIME_S"] = p.execution_time_s
+            if p.status_period_ms != codec.UNCHANGED:
+                changes["MGR_STATUS_MS"] = p.status_period_ms
+            if p.granularity_ms != codec.UNCHANGED:
+                try:
+                    self.manager.validate_granularity(p.granularity_ms)
+                except ParamError:
+                    self._ack(cmd, AckResult.BAD_VALUE)
+                    return
+                changes["MGR_WDG_GRAN_MS"] = p.granularity_ms
+            self._set_all(cmd, changes)
+        elif isinstance(p, codec.Stop):
+            self._ack(cmd, AckResult.ACCEPTED)
+            self.send_due(force_acks_only=True)
+            self.manager.post(ManagerCommand("stop", reason=p.reason))
+        elif isinstance(p, codec.RestartThread):
+            if self.manager.find(p.thread_id) is None:
+                self._ack(cmd, AckResult.UNKNOWN_THREAD)
+                return
+            self.manager.post(ManagerCommand(
+                "restart_thread", p.thread_id,
+                reply=lambda ok, _r: self._ack(cmd, AckResult.ACCEPTED if ok else AckResult.BAD_VALUE)))
+
+    def _set_all(self, cmd: PendingCommand, changes: dict[str, int]) -> None:
+        """All or nothing: validate every value first, so a refused command changes nothing."""
+        params = self.ctx.params
+        try:
+            for name, value in changes.items():
+                if value <= 0:
+                    raise ParamError(name, "must be positive")
+                params.spec(name).validate(value)
+        except ParamError:
+            self._ack(cmd, AckResult.BAD_VALUE)
+            return
+        for name, value in changes.items():
+            params.set(name, value)
+        self._ack(cmd, AckResult.ACCEPTED)
+
+    # ------------------------------------------------------------------ send side
+    def _send(self, payload: Any, addr: tuple[str, int] | None = None) -> None:
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        try:
+            datagram = codec.encode(payload, vehicle_id=self.ctx.vehicle_id, seq=self._seq,
+                                    t_ns=self.ctx.clock.realtime_ns())
+            self.sock.sendto(datagram, addr or self.dest)
+            self.counters.sent += 1
+        except (OSError, ValueError) as exc:
+            self.counters.send_errors += 1
+            if self.counters.send_errors in (1, 100) or self.counters.send_errors % 10000 == 0:
+                log.warning("legacy: cannot send %s: %s", type(payload).__name__, exc)
+
+    def _due(self, key: str, period_ms: int, now_ns: int) -> bool:
+        due = self._next_due_ns.get(key, 0)
+        if now_ns < due:
+            return False
+        self._next_due_ns[key] = now_ns + period_ms * 1_000_000
+        return True
+
+    def send_due(self, *, force_acks_only: bool = False) -> None:
+        while (item := self.acks.get_nowait()) is not None:
+            self._send(item[0], item[1])
+        if force_acks_only:
+            return
+        now = self.ctx.clock.monotonic_ns()
+        params = self.ctx.params
+        threads = self.manager.threads
+        if threads and self._due("thread_status", int(params.get("MGR_STATUS_MS")), now):
+            self._status_index %= len(threads)
+            self._send(self.thread_status(threads[self._status_index]))
+            self._status_index += 1
+        if self._due("manager_status", int(params.get("MGR_MSTAT_MS")), now):
+            st = self.manager.status()
+            self._send(codec.ManagerStatus(st.elapsed_ms, st.exec_time_s, st.status_ms,
+                                           st.granularity_ms, min(st.n_threads, 255)))
+        for t in threads:
+            builder = DATA_MESSAGES.get(t.name)
+            if builder is None or not t.enabled:
+                continue
+            if self._due(t.name, t.message_ms, now):
+                msg = builder(self, t)
+                if msg is not None:
+                    self._send(msg)
+
+    @staticmethod
+    def thread_status(t: ManagedThread) -> codec.ThreadStatus:
+        s = t.status()
+        flags = ((codec.ThreadFlag.INITIALISED if s.initialised else 0)
+                 | (codec.ThreadFlag.RUNNING if s.running else 0)
+                 | (codec.ThreadFlag.IN_PERIODIC if s.in_periodic else 0)
+                 | (codec.ThreadFlag.ALIVE if s.alive else 0))
+        return codec.ThreadStatus(s.thread_id, int(flags), min(s.restarts, 0xFFFF),
+                                  min(int(s.mean_step_us), 0xFFFFFFFF), s.watchdog_ms,
+                                  s.message_ms, s.name[:16])
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+
+def _f(x: float | None) -> float:
+    return math.nan if x is None else float(x)
+
+
+def _imu(adapter: LegacyAdapter, t: ManagedThread) -> codec.Imu | None:
+    s = adapter.ctx.state.imu.read()
+    if s is None:
+        return None
+    slow = adapter.ctx.state.imu_slow.read()
+    return codec.Imu(*s.rates_rad_s, *s.accel_m_s2,
+                     slow.temperature_c if slow is not None else math.nan, t.cycles & 0xFFFFFFFF)
+
+
+def _gps(adapter: LegacyAdapter, t: ManagedThread) -> codec.Gps | None:
+    g = adapter.ctx.state.gps.read()
+    if g is None:
+        return None
+    return codec.Gps(_f(g.lat_deg), _f(g.lon_deg), _f(g.alt_m), _f(g.vn_m_s), _f(g.ve_m_s),
+                     _f(g.vd_m_s), _f(g.pdop), _f(g.hdop), _f(g.vdop), _f(g.tdop),
+                     _f(None if g.latency_s is None else g.latency_s * 1e3), _f(g.alt_std_m),
+                     max(0, min(3, g.fix)), min(g.sats or 0, 255))
+
+
+def _servo(adapter: LegacyAdapter, t: ManagedThread) -> codec.Servo | None:
+    s = adapter.ctx.state.servo.read()
+    if s is None:
+        return None
+    flags = (codec.ServoFlag.AUTOMATIC if s.auto_engaged else 0) | (
+        codec.ServoFlag.FAILSAFE if s.failsafe else 0)
+    return codec.Servo(tuple(s.pilot_us[:8]), tuple(s.computer_us[:8]),
+                       s.avionics_batt_raw, s.servo_batt_raw, int(flags))
+
+
+def _estimator(adapter: LegacyAdapter, t: ManagedThread) -> codec.Estimator | None:
+    e = adapter.ctx.state.estimator.read()
+    if e is None:
+        return None
+    return codec.Estimator(e.roll_rad, e.pitch_rad, e.yaw_rad, *e.pos_ned_m, *e.vel_ned_m_s,
+                           *e.gyro_bias_rad_s)
+
+
+def _control(adapter: LegacyAdapter, t: ManagedThread) -> codec.Control | None:
+    c = adapter.ctx.state.control.read()
+    if c is None:
+        return None
+    return codec.Control(c.aileron, c.elevator, c.rudder, c.throttle, int(c.enabled))
+
+
+DATA_MESSAGES = {"imu": _imu, "gps": _gps, "servo": _servo, "estimator": _estimator,
+                 "control": _control}
