@@ -64,7 +64,7 @@ class GpsDriver(SerialDevice):
                     ["utc_s", "lat_deg", "lon_deg", "alt_m", "fix", "sats", "hdop", "pdop", "vdop",
                      "tdop", "speed_m_s", "course_deg", "vn_m_s", "ve_m_s", "vd_m_s", "alt_std_m",
                      "h_std_m", "latency_ms"])
-        tlog.define(FMT_RAW, "%02X", ["raw_bytes"])
+        tlog.define(FMT_RAW, "%02hhX", ["raw_bytes"])
 
     def _configure(self) -> None:
         self.decoder.allow_no_checksum = bool(self.param("NO_CKSUM"))
@@ -86,7 +86,7 @@ class GpsDriver(SerialDevice):
                                          idle_ms=self.decoder.idle_handoff_ns // 1_000_000
                                          if self.decoder.idle_handoff_ns else 20)
 
-    def step(self) -> bool:
+    def step(self) -> int:
         data = self.read_chunk()
         clock = self.ctx.clock
         t_ns = clock.realtime_ns()
@@ -110,7 +110,7 @@ class GpsDriver(SerialDevice):
                     _nan(sol.vn_m_s), _nan(sol.ve_m_s), _nan(sol.vd_m_s), _nan(sol.alt_std_m),
                     _nan(fix.h_std_m),
                     _nan(None if sol.latency_s is None else sol.latency_s * 1e3), t_ns=t_ns)
-        return bool(solutions)
+        return len(solutions)
 
     def counters(self) -> dict[str, int]:
         out = super().counters()

@@ -32,7 +32,7 @@ class ImuDriver(SerialDevice):
         tlog.define(FMT_SLOW, "%.7f,%.7f,%.7f,%.6f,%.6f,%.6f,%.2f,%hu",
                     ["p_rad_s", "q_rad_s", "r_rad_s", "ax_m_s2", "ay_m_s2", "az_m_s2",
                      "temperature_c", "bit_word"])
-        tlog.define(FMT_RAW, "%02X", ["raw_bytes"])
+        tlog.define(FMT_RAW, "%02hhX", ["raw_bytes"])
 
     def on_params_changed(self) -> None:
         self.log_raw = bool(self.param("LOG_RAW"))
@@ -47,7 +47,7 @@ class ImuDriver(SerialDevice):
     def recover(self) -> None:
         self.decoder.reset()
 
-    def step(self) -> bool:
+    def step(self) -> int:
         data = self.read_chunk()
         if not data:
             return False
@@ -55,14 +55,14 @@ class ImuDriver(SerialDevice):
         tlog = self.tlog
         if tlog is not None and self.log_raw:
             tlog.log_array(FMT_RAW, data, t_ns=t_ns)
-        got_fast = False
+        got_fast = 0
         state = self.ctx.state
         sink = self.item_sink
         for item in self.decoder.feed(data, t_ns):
             if sink is not None:
                 sink(item)
             if isinstance(item, ImuFast):
-                got_fast = True
+                got_fast += 1
                 state.imu.write(ImuSample(t_ns, item.counter, item.rates_rad_s, item.accel_m_s2,
                                           item.gyro_ok, item.accel_ok))
                 if tlog is not None:

@@ -12,6 +12,7 @@ silent device rather than restarting the thread, because a restart cannot bring 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -151,6 +152,8 @@ class SerialDevice(ManagedThread):
             return None
         if not data:
             self.port_counters.timeouts += 1
+        else:
+            self.work_t0_ns = time.perf_counter_ns()  # step time counts work, not the wait
         self.port_counters.bytes_in += len(data)
         return bytes(data)
 

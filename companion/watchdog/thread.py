@@ -155,6 +155,9 @@ class ManagedThread:
         self._period_ring = [0] * PERIOD_RING
         self._period_n = 0
         self._last_cycle_start_ns = 0
+        self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (host ns, cycles) samples
+        self._rate_n = 0
+        self.work_t0_ns = 0  # set by device-paced steps when data arrived (excludes the wait)
         self._exit_kind: str = ""  # "", "normal", "crash"
 
     # ---------------------------------------------------------------- hooks for implementers
@@ -179,9 +182,10 @@ class ManagedThread:
         """Aperiodic section in the worker. Return False to terminate without looping."""
         return True
 
-    def step(self) -> bool | None:
-        """One periodic cycle in the worker. Return False when the cycle made no progress
-        (timeout without data), so the watchdog is not told the thread is alive."""
+    def step(self) -> bool | int | None:
+        """One periodic cycle in the worker. Return False (or 0) when the cycle made no
+        progress (timeout without data), so the watchdog is not told the thread is alive; an
+        int counts the items it delivered (a read that brought two IMU frames is two cycles)."""
         return None
 
     def recover(self) -> None:
@@ -267,17 +271,23 @@ class ManagedThread:
         return [self._period_ring[i % PERIOD_RING] for i in range(start, self._period_n)]
 
     def measured_rate_hz(self) -> float:
-        samples = self.period_samples_ns()[-200:]
-        if not samples:
+        """Cycles per second (in clock time) over the last 256 steps."""
+        n = min(self._rate_n, len(self._rate_ring))
+        if n < 2:
             return 0.0
-        mean_ns = sum(samples) / len(samples)
-        return 1e9 / mean_ns * self.ctx.clock.scale if mean_ns > 0 else 0.0
+        size = len(self._rate_ring)
+        t_old, c_old = self._rate_ring[(self._rate_n - n) % size]
+        t_new, c_new = self._rate_ring[(self._rate_n - 1) % size]
+        if t_new <= t_old:
+            return 0.0
+        return (c_new - c_old) / ((t_new - t_old) / 1e9) / self.ctx.clock.scale
 
     def reset_statistics(self) -> None:
         self._step_total_ns = 0
         self._step_count = 0
         self._step_worst_ns = 0
         self._period_n = 0
+        self._rate_n = 0
         self.missed_deadlines = 0
         self.overruns = 0
 
@@ -285,7 +295,8 @@ class ManagedThread:
     def _ensure_log(self) -> None:
         """Open this thread's log once per run; every (re)start then adds a Begin Data."""
         logs = self.ctx.logs
-        if self.tlog is None and logs is not None:
+        has_formats = type(self).define_logs is not ManagedThread.define_logs
+        if self.tlog is None and logs is not None and has_formats:
             text = "LOG_TEXT" in self.ctx.params and bool(self.ctx.params.get("LOG_TEXT"))
             self.tlog = logs.open(self.name, text=text)
             self.define_logs(self.tlog)
@@ -334,14 +345,17 @@ class ManagedThread:
                 if self._params_dirty.is_set():
                     self._params_dirty.clear()
                     self.on_params_changed()
+                self.work_t0_ns = 0
                 t0 = time.perf_counter_ns()
                 progressed = self.step()
                 t1 = time.perf_counter_ns()
                 self.heartbeats += 1
                 if stop.is_set():
                     break
-                if progressed is not False:
-                    self._account_cycle(t0, t1 - t0, budget_ns)
+                if progressed is not False and progressed != 0:
+                    count = progressed if type(progressed) is int else 1
+                    work_t0 = self.work_t0_ns or t0
+                    self._account_cycle(t0, t1 - work_t0, budget_ns, count)
                 if period_ns:
                     next_ns += period_ns
                     now = clock.monotonic_ns()
@@ -371,7 +385,7 @@ class ManagedThread:
             if manager is not None:
                 manager.wake()
 
-    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int) -> None:
+    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int = 1) -> None:
         if self._last_cycle_start_ns:
             self._period_ring[self._period_n % PERIOD_RING] = t0_ns - self._last_cycle_start_ns
             self._period_n += 1
@@ -382,4 +396,6 @@ class ManagedThread:
             self._step_worst_ns = step_ns
         if step_ns > budget_ns:
             self.overruns += 1
-        self.cycles += 1
+        self.cycles += count
+        self._rate_ring[self._rate_n % len(self._rate_ring)] = (t0_ns, self.cycles)
+        self._rate_n += 1
