@@ -11,6 +11,7 @@ import contextlib
 import json
 import logging
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -27,6 +28,8 @@ from companion.state import VehicleState
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
+
+SWITCH_INTERVAL_S = 0.0005
 
 RUNTIME_PARAMS: list[ParamSpec] = [
     int_param("LOG_TEXT", 0, 0, 1, "",
@@ -160,6 +163,9 @@ class Runtime:
         }
 
     def start(self) -> None:
+        # Device threads wait for the GIL after their read returns; CPython's default 5 ms
+        # switch interval would make that wait longer than a servo period at 5x simulation.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         if self.logs is not None:
             from companion.logs import write_run_json
 

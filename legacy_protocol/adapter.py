@@ -65,8 +65,9 @@ class PendingCommand:
 
 class _Rx(ManagedThread):
     def __init__(self, adapter: LegacyAdapter) -> None:
-        super().__init__("legacy-rx", thread_id=0, watchdog_ms=2000, message_ms=1000,
-                         param_prefix="LEGRX")
+        super().__init__(
+            "legacy-rx", thread_id=0, watchdog_ms=2000, message_ms=1000, param_prefix="LEGRX"
+        )
         self.adapter = adapter
 
     def interrupt_io(self) -> None:
@@ -79,8 +80,15 @@ class _Rx(ManagedThread):
 
 class _Tx(ManagedThread):
     def __init__(self, adapter: LegacyAdapter) -> None:
-        super().__init__("legacy-tx", thread_id=0, period_ms=10.0, watchdog_ms=1000,
-                         message_ms=1000, param_prefix="LEGTX", budget_ms=5.0)
+        super().__init__(
+            "legacy-tx",
+            thread_id=0,
+            period_ms=10.0,
+            watchdog_ms=1000,
+            message_ms=1000,
+            param_prefix="LEGTX",
+            budget_ms=5.0,
+        )
         self.adapter = adapter
 
     def step(self) -> bool:
@@ -91,18 +99,30 @@ class _Tx(ManagedThread):
 class LegacyAdapter:
     """Owns the socket and the two threads; registers them with the manager."""
 
-    def __init__(self, ctx: RuntimeContext, manager: ThreadManager, *,
-                 dest: str = "255.255.255.255:5501", listen_port: int = 5500,
-                 allow: Iterable[str] = ("127.0.0.0/8",), bind_host: str = "0.0.0.0") -> None:
+    def __init__(
+        self,
+        ctx: RuntimeContext,
+        manager: ThreadManager,
+        *,
+        dest: str = "255.255.255.255:5501",
+        listen_port: int = 5500,
+        allow: Iterable[str] = ("127.0.0.0/8",),
+        bind_host: str = "0.0.0.0",
+    ) -> None:
         self.ctx = ctx
         self.manager = manager
         self.dest = parse_hostport(dest, codec.DEFAULT_MONITOR_PORT)
         self.allow = [ipaddress.ip_network(a, strict=False) for a in allow]
         self.counters = LegacyCounters()
         self.queues: dict[int, MessageQueue[PendingCommand]] = {
-            int(t): MessageQueue(64) for t in (MsgType.SET_THREAD_PARAMS,
-                                               MsgType.SET_MANAGER_PARAMS, MsgType.STOP,
-                                               MsgType.RESTART_THREAD)}
+            int(t): MessageQueue(64)
+            for t in (
+                MsgType.SET_THREAD_PARAMS,
+                MsgType.SET_MANAGER_PARAMS,
+                MsgType.STOP,
+                MsgType.RESTART_THREAD,
+            )
+        }
         self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]]] = MessageQueue(256)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -173,8 +193,11 @@ class LegacyAdapter:
             if not all(math.isfinite(v) for v in (p.roll_rad, p.pitch_rad, p.quality)):
                 self._ack(pending, AckResult.BAD_VALUE)
                 return
-            self.ctx.state.horizon.write(HorizonMeasurement(
-                p.frame_t_ns, p.roll_rad, p.pitch_rad, max(0.0, min(1.0, p.quality)), "legacy"))
+            self.ctx.state.horizon.write(
+                HorizonMeasurement(
+                    p.frame_t_ns, p.roll_rad, p.pitch_rad, max(0.0, min(1.0, p.quality)), "legacy"
+                )
+            )
             c.accepted += 1
             self._ack(pending, AckResult.ACCEPTED)
             return
@@ -189,8 +212,9 @@ class LegacyAdapter:
         self.manager.wake()
 
     def _ack(self, cmd: PendingCommand, result: AckResult) -> None:
-        ack = codec.CommandAck(command_type=int(cmd.payload.TYPE), result=int(result),
-                               command_seq=cmd.seq)
+        ack = codec.CommandAck(
+            command_type=int(cmd.payload.TYPE), result=int(result), command_seq=cmd.seq
+        )
         self.acks.put((ack, cmd.addr))
 
     # ------------------------------------------------------------------ main-thread consumer
@@ -245,9 +269,15 @@ class LegacyAdapter:
             if self.manager.find(p.thread_id) is None:
                 self._ack(cmd, AckResult.UNKNOWN_THREAD)
                 return
-            self.manager.post(ManagerCommand(
-                "restart_thread", p.thread_id,
-                reply=lambda ok, _r: self._ack(cmd, AckResult.ACCEPTED if ok else AckResult.BAD_VALUE)))
+            self.manager.post(
+                ManagerCommand(
+                    "restart_thread",
+                    p.thread_id,
+                    reply=lambda ok, _r: self._ack(
+                        cmd, AckResult.ACCEPTED if ok else AckResult.BAD_VALUE
+                    ),
+                )
+            )
 
     def _set_all(self, cmd: PendingCommand, changes: dict[str, int]) -> None:
         """All or nothing: validate every value first, so a refused command changes nothing."""
@@ -268,8 +298,12 @@ class LegacyAdapter:
     def _send(self, payload: Any, addr: tuple[str, int] | None = None) -> None:
         self._seq = (self._seq + 1) & 0xFFFFFFFF
         try:
-            datagram = codec.encode(payload, vehicle_id=self.ctx.vehicle_id, seq=self._seq,
-                                    t_ns=self.ctx.clock.realtime_ns())
+            datagram = codec.encode(
+                payload,
+                vehicle_id=self.ctx.vehicle_id,
+                seq=self._seq,
+                t_ns=self.ctx.clock.realtime_ns(),
+            )
             self.sock.sendto(datagram, addr or self.dest)
             self.counters.sent += 1
         except (OSError, ValueError) as exc:
@@ -298,8 +332,15 @@ class LegacyAdapter:
             self._status_index += 1
         if self._due("manager_status", int(params.get("MGR_MSTAT_MS")), now):
             st = self.manager.status()
-            self._send(codec.ManagerStatus(st.elapsed_ms, st.exec_time_s, st.status_ms,
-                                           st.granularity_ms, min(st.n_threads, 255)))
+            self._send(
+                codec.ManagerStatus(
+                    st.elapsed_ms,
+                    st.exec_time_s,
+                    st.status_ms,
+                    st.granularity_ms,
+                    min(st.n_threads, 255),
+                )
+            )
         for t in threads:
             builder = DATA_MESSAGES.get(t.name)
             if builder is None or not t.enabled:
@@ -312,13 +353,21 @@ class LegacyAdapter:
     @staticmethod
     def thread_status(t: ManagedThread) -> codec.ThreadStatus:
         s = t.status()
-        flags = ((codec.ThreadFlag.INITIALISED if s.initialised else 0)
-                 | (codec.ThreadFlag.RUNNING if s.running else 0)
-                 | (codec.ThreadFlag.IN_PERIODIC if s.in_periodic else 0)
-                 | (codec.ThreadFlag.ALIVE if s.alive else 0))
-        return codec.ThreadStatus(s.thread_id, int(flags), min(s.restarts, 0xFFFF),
-                                  min(int(s.mean_step_us), 0xFFFFFFFF), s.watchdog_ms,
-                                  s.message_ms, s.name[:16])
+        flags = (
+            (codec.ThreadFlag.INITIALISED if s.initialised else 0)
+            | (codec.ThreadFlag.RUNNING if s.running else 0)
+            | (codec.ThreadFlag.IN_PERIODIC if s.in_periodic else 0)
+            | (codec.ThreadFlag.ALIVE if s.alive else 0)
+        )
+        return codec.ThreadStatus(
+            s.thread_id,
+            int(flags),
+            min(s.restarts, 0xFFFF),
+            min(int(s.mean_step_us), 0xFFFFFFFF),
+            s.watchdog_ms,
+            s.message_ms,
+            s.name[:16],
+        )
 
     def close(self) -> None:
         try:
@@ -336,18 +385,34 @@ def _imu(adapter: LegacyAdapter, t: ManagedThread) -> codec.Imu | None:
     if s is None:
         return None
     slow = adapter.ctx.state.imu_slow.read()
-    return codec.Imu(*s.rates_rad_s, *s.accel_m_s2,
-                     slow.temperature_c if slow is not None else math.nan, t.cycles & 0xFFFFFFFF)
+    return codec.Imu(
+        *s.rates_rad_s,
+        *s.accel_m_s2,
+        slow.temperature_c if slow is not None else math.nan,
+        t.cycles & 0xFFFFFFFF,
+    )
 
 
 def _gps(adapter: LegacyAdapter, t: ManagedThread) -> codec.Gps | None:
     g = adapter.ctx.state.gps.read()
     if g is None:
         return None
-    return codec.Gps(_f(g.lat_deg), _f(g.lon_deg), _f(g.alt_m), _f(g.vn_m_s), _f(g.ve_m_s),
-                     _f(g.vd_m_s), _f(g.pdop), _f(g.hdop), _f(g.vdop), _f(g.tdop),
-                     _f(None if g.latency_s is None else g.latency_s * 1e3), _f(g.alt_std_m),
-                     max(0, min(3, g.fix)), min(g.sats or 0, 255))
+    return codec.Gps(
+        _f(g.lat_deg),
+        _f(g.lon_deg),
+        _f(g.alt_m),
+        _f(g.vn_m_s),
+        _f(g.ve_m_s),
+        _f(g.vd_m_s),
+        _f(g.pdop),
+        _f(g.hdop),
+        _f(g.vdop),
+        _f(g.tdop),
+        _f(None if g.latency_s is None else g.latency_s * 1e3),
+        _f(g.alt_std_m),
+        max(0, min(3, g.fix)),
+        min(g.sats or 0, 255),
+    )
 
 
 def _servo(adapter: LegacyAdapter, t: ManagedThread) -> codec.Servo | None:
@@ -355,17 +420,24 @@ def _servo(adapter: LegacyAdapter, t: ManagedThread) -> codec.Servo | None:
     if s is None:
         return None
     flags = (codec.ServoFlag.AUTOMATIC if s.auto_engaged else 0) | (
-        codec.ServoFlag.FAILSAFE if s.failsafe else 0)
-    return codec.Servo(tuple(s.pilot_us[:8]), tuple(s.computer_us[:8]),
-                       s.avionics_batt_raw, s.servo_batt_raw, int(flags))
+        codec.ServoFlag.FAILSAFE if s.failsafe else 0
+    )
+    return codec.Servo(
+        tuple(s.pilot_us[:8]),
+        tuple(s.computer_us[:8]),
+        s.avionics_batt_raw,
+        s.servo_batt_raw,
+        int(flags),
+    )
 
 
 def _estimator(adapter: LegacyAdapter, t: ManagedThread) -> codec.Estimator | None:
     e = adapter.ctx.state.estimator.read()
     if e is None:
         return None
-    return codec.Estimator(e.roll_rad, e.pitch_rad, e.yaw_rad, *e.pos_ned_m, *e.vel_ned_m_s,
-                           *e.gyro_bias_rad_s)
+    return codec.Estimator(
+        e.roll_rad, e.pitch_rad, e.yaw_rad, *e.pos_ned_m, *e.vel_ned_m_s, *e.gyro_bias_rad_s
+    )
 
 
 def _control(adapter: LegacyAdapter, t: ManagedThread) -> codec.Control | None:
@@ -375,5 +447,10 @@ def _control(adapter: LegacyAdapter, t: ManagedThread) -> codec.Control | None:
     return codec.Control(c.aileron, c.elevator, c.rudder, c.throttle, int(c.enabled))
 
 
-DATA_MESSAGES = {"imu": _imu, "gps": _gps, "servo": _servo, "estimator": _estimator,
-                 "control": _control}
+DATA_MESSAGES = {
+    "imu": _imu,
+    "gps": _gps,
+    "servo": _servo,
+    "estimator": _estimator,
+    "control": _control,
+}

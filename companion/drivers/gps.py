@@ -43,8 +43,9 @@ class GpsDriver(SerialDevice):
         self.decoder = self._new_decoder(allow_no_checksum=False, idle_ms=20)
 
     @staticmethod
-    def _new_decoder(*, allow_no_checksum: bool, idle_ms: int) -> NmeaDecoder:
-        return NmeaDecoder(allow_no_checksum=allow_no_checksum, expected_sentences=EXPECTED,
+    def _new_decoder(*, allow_no_checksum: bool, idle_ms: int, pashr: bool = False) -> NmeaDecoder:
+        expected = EXPECTED + (("POS",) if pashr else ())
+        return NmeaDecoder(allow_no_checksum=allow_no_checksum, expected_sentences=expected,
                            idle_handoff_ms=idle_ms)
 
     def declare_params(self) -> list[ParamSpec]:
@@ -55,6 +56,9 @@ class GpsDriver(SerialDevice):
             int_param(f"{p}_IDLE_MS", 20, 1, 500, "ms",
                       "Hand an epoch off after this much silence if not every expected sentence came."),
             int_param(f"{p}_LOG_RAW", 1, 0, 1, "", "1 logs the receiver's raw bytes too."),
+            int_param(f"{p}_PASHR", 0, 0, 1, "",
+                      "1: the receiver sends Ashtech $PASHR,POS every epoch; an epoch is complete "
+                      "only with it (otherwise it would arrive after the hand-off)."),
         ]
 
     def define_logs(self, tlog: Any) -> None:
@@ -67,6 +71,10 @@ class GpsDriver(SerialDevice):
         tlog.define(FMT_RAW, "%02hhX", ["raw_bytes"])
 
     def _configure(self) -> None:
+        pashr = bool(self.param("PASHR"))
+        if pashr != ("POS" in self.decoder.expected):
+            self.decoder = self._new_decoder(allow_no_checksum=bool(self.param("NO_CKSUM")),
+                                             idle_ms=int(self.param("IDLE_MS")), pashr=pashr)
         self.decoder.allow_no_checksum = bool(self.param("NO_CKSUM"))
         self.decoder.idle_handoff_ns = int(self.param("IDLE_MS")) * 1_000_000
         self.log_raw = bool(self.param("LOG_RAW"))
@@ -82,9 +90,9 @@ class GpsDriver(SerialDevice):
         self.decoder.reset()
 
     def recover(self) -> None:
-        self.decoder = self._new_decoder(allow_no_checksum=self.decoder.allow_no_checksum,
-                                         idle_ms=self.decoder.idle_handoff_ns // 1_000_000
-                                         if self.decoder.idle_handoff_ns else 20)
+        self.decoder = self._new_decoder(allow_no_checksum=bool(self.param("NO_CKSUM")),
+                                         idle_ms=int(self.param("IDLE_MS")),
+                                         pashr=bool(self.param("PASHR")))
 
     def step(self) -> int:
         data = self.read_chunk()

@@ -120,6 +120,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             rt = Runtime(cfg, RuntimeOptions(
                 clock=clock, flight_dir=flight_dir,
                 extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))
+            if sim.gps_ashtech:
+                rt.ctx.params.set("GPS_PASHR", 1)
             if on_runtime is not None:
                 on_runtime(rt)
             t0 = time.monotonic()

@@ -225,6 +225,7 @@ class World:
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> dict[str, Any]:
+        sys.setswitchinterval(0.0005)  # the board thread must answer within a millisecond
         self._open_truth_log()
         board = threading.Thread(target=self._board_loop, name="servo-board", daemon=True)
         board.start()
@@ -234,8 +235,12 @@ class World:
         t0_host = time.monotonic()
         stop_reason = "signal"
         model = self.model
+        parent = os.getppid()
         try:
             while not self._stop.is_set():
+                if self.ticks % 50 == 0 and os.getppid() != parent:
+                    stop_reason = "runtime gone"  # never outlive the flight program
+                    break
                 if self.opts.duration_s and self.t_s >= self.opts.duration_s:
                     stop_reason = "duration"
                     break

@@ -359,10 +359,12 @@ class ManagedThread:
                 if period_ns:
                     next_ns += period_ns
                     now = clock.monotonic_ns()
-                    if now >= next_ns:
-                        skipped = (now - next_ns) // period_ns + 1
-                        self.missed_deadlines += skipped
-                        next_ns += skipped * period_ns
+                    if now > next_ns:
+                        # late: run the next cycle at once, but if a whole period or more
+                        # was lost, drop those cycles rather than bunch them (keeps the phase)
+                        self.missed_deadlines += 1
+                        if now - next_ns >= period_ns:
+                            next_ns += (now - next_ns) // period_ns * period_ns
                     if clock.wait_until_ns(next_ns, stop):
                         break
             self._exit_kind = "normal"

@@ -1,0 +1,98 @@
+"""Decode cost of the device protocols, per frame (IMU, servo) and per epoch (GPS), in microseconds.
+
+Run: ``.venv/bin/python bench/drivers_bench.py [--seconds 0.5]``. Streams come from the device
+simulators; each row feeds the same stream three ways: one frame/epoch per ``feed`` call (what a
+driver reading on a serial timeout sees), 1 s of data per call, and one byte per call (worst case).
+The budget column is the device period, to put the cost in proportion.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from companion.drivers.gps_protocol import NmeaDecoder
+from companion.drivers.imu_protocol import ImuDecoder
+from companion.drivers.servo_protocol import PilotDecoder, PilotFrame, encode_pilot
+from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim
+
+
+def imu_units(count: int) -> list[bytes]:
+    sim = ImuSim(np.random.default_rng(1))
+    return [sim.frame((0.1, -0.2, 0.05), (0.3, 0.1, -9.8)) for _ in range(count)]
+
+
+def servo_units(count: int) -> list[bytes]:
+    channels = (1500, 1510, 1200, 1490, 1900, 1500, 1500, 1500)
+    return [encode_pilot(PilotFrame(n & 0xFF, True, False, channels, 98, 87)) for n in range(count)]
+
+
+def gps_units(count: int, ashtech: bool) -> list[bytes]:
+    sim = GpsSim(np.random.default_rng(2), GpsSimConfig(ashtech_pos=ashtech))
+    return [sim.epoch(3600 + k / 10, 45.0, 9.0, 300.0, 20.0, 5.0, -1.0) for k in range(count)]
+
+
+def time_feeds(
+    make: Callable[[], object], chunks: Sequence[bytes], units: int, min_s: float
+) -> float:
+    """Mean microseconds per unit (frame/epoch), repeating the whole stream for >= min_s."""
+    elapsed_ns = 0
+    done = 0
+    while elapsed_ns < min_s * 1e9:
+        decoder = make()
+        feed = decoder.feed  # type: ignore[attr-defined]
+        start = time.perf_counter_ns()
+        for i, chunk in enumerate(chunks):
+            feed(chunk, i)
+        elapsed_ns += time.perf_counter_ns() - start
+        done += units
+    return elapsed_ns / done / 1000.0
+
+
+def rows(min_s: float) -> list[tuple[str, float, float, float, float]]:
+    imu = imu_units(100)
+    servo = servo_units(50)
+    gps = gps_units(10, False)
+    gps_pos = gps_units(10, True)
+    expected = GpsSimConfig().expected_sentences
+    expected_pos = GpsSimConfig(ashtech_pos=True).expected_sentences
+    cases: list[tuple[str, Callable[[], object], list[bytes], float]] = [
+        ("IMU fast frame (20 B)", ImuDecoder, imu, 10.0),
+        ("servo pilot frame (23 B)", PilotDecoder, servo, 20.0),
+        ("GPS epoch, 5 sentences", lambda: NmeaDecoder(expected_sentences=expected), gps, 100.0),
+        (
+            "GPS epoch, 5 + PASHR,POS",
+            lambda: NmeaDecoder(expected_sentences=expected_pos),
+            gps_pos,
+            100.0,
+        ),
+    ]
+    out = []
+    for name, make, units, budget_ms in cases:
+        joined = b"".join(units)
+        per_unit = time_feeds(make, units, len(units), min_s)
+        per_second = time_feeds(make, [joined], len(units), min_s)
+        per_byte = time_feeds(
+            make, [joined[i : i + 1] for i in range(len(joined))], len(units), min_s
+        )
+        out.append((name, per_unit, per_second, per_byte, budget_ms * 1000.0))
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=0.5, help="minimum timing per cell")
+    args = parser.parse_args(argv)
+    header = f"{'decode cost, us per unit':<28}{'1/feed':>10}{'1 s/feed':>10}{'byte/feed':>11}{'period':>10}"
+    print(header)
+    print("-" * len(header))
+    for name, per_unit, per_second, per_byte, period_us in rows(args.seconds):
+        print(f"{name:<28}{per_unit:>10.1f}{per_second:>10.1f}{per_byte:>11.1f}{period_us:>10.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

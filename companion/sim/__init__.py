@@ -1,0 +1,1 @@
+"""Software-in-the-loop simulation: flight model, scripted pilot and device byte generators."""

@@ -1,0 +1,129 @@
+"""Whole-system SITL runs: the real `companion sim` command, JSBSim, pseudo-terminals, logs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import free_udp_port
+
+from companion.logs import read_log
+
+SCENARIOS = ["level", "turns", "climb", "aerobatic", "mixed", "auto"]
+
+
+def sim_cmd(tmp: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "companion", "sim", "--log-dir", str(tmp / "flights"),
+            "--params-file", str(tmp / "params.parm"), "--mavlink", "none",
+            "--legacy-listen", str(free_udp_port()),
+            "--legacy-dest", f"127.0.0.1:{free_udp_port()}", *extra]
+
+
+def flight_dir(tmp: Path) -> Path:
+    dirs = sorted((tmp / "flights").iterdir())
+    assert len(dirs) == 1, dirs
+    return dirs[0]
+
+
+def record_rate_hz(path: Path, index: int) -> float:
+    log = read_log(path)
+    t = log.data(index)["time_s"]
+    assert len(t) > 10, f"{path.name}: only {len(t)} records of format {index}"
+    # rate over the middle of the flight: start-up and shutdown are not steady state
+    lo, hi = np.percentile(t, [10, 90])
+    n = np.count_nonzero((t >= lo) & (t <= hi))
+    return float((n - 1) / (hi - lo))
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
+    duration = 60
+    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", str(duration),
+                                  "--scenario", scenario, "--seed", "1", "--json"),
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    threads = {t["name"]: t for t in summary["threads"]}
+    for name in ("imu", "gps", "servo"):
+        assert threads[name]["restarts"] == 0, threads[name]
+        assert not threads[name]["failed"]
+    fdir = flight_dir(tmp_path)
+    rates = {"imu": record_rate_hz(fdir / "imu.bin", 1),
+             "gps": record_rate_hz(fdir / "gps.bin", 1),
+             "servo": record_rate_hz(fdir / "servo.bin", 1)}
+    nominal = {"imu": 100.0, "gps": 10.0, "servo": 50.0}
+    for name, rate in rates.items():
+        assert abs(rate / nominal[name] - 1) < 0.01, f"{scenario}: {name} at {rate:.2f} Hz"
+    truth = read_log(fdir / "truth.bin").data(1)
+    assert np.all(np.isfinite(truth["roll_rad"]))
+    assert truth["time_s"][-1] - truth["time_s"][0] > duration * 0.9
+    assert summary["simulator"]["real_time_factor"] > 4.0
+
+
+def test_sigterm_stops_cleanly_within_one_second(tmp_path: Path) -> None:
+    proc = subprocess.Popen(sim_cmd(tmp_path, "--fast"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        imu = None
+        while time.monotonic() < deadline:
+            dirs = list((tmp_path / "flights").glob("*/imu.bin")) if (tmp_path / "flights").exists() else []
+            if dirs and dirs[0].stat().st_size > 20_000:
+                imu = dirs[0]
+                break
+            assert proc.poll() is None, proc.communicate()[1][-2000:]
+            time.sleep(0.05)
+        assert imu is not None, "the flight never started logging"
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()  # type: ignore[union-attr]
+        proc.stderr.close()  # type: ignore[union-attr]
+    assert proc.returncode == 0
+    assert elapsed < 1.0, f"shutdown took {elapsed:.2f} s"
+    fdir = imu.parent
+    for name in ("imu", "gps", "servo", "truth"):
+        log = read_log(fdir / f"{name}.bin")
+        assert log.closed_cleanly, f"{name}.bin has no final End Data"
+    run = json.loads((fdir / "run.json").read_text())
+    assert run["software"]["name"] == "uav-companion"
+    assert "IMU_WDG_MS" in run["parameters"]
+
+
+def test_runtime_killed_mid_write_leaves_readable_logs(tmp_path: Path) -> None:
+    # real time, so log timestamps and the host clock agree
+    proc = subprocess.Popen(sim_cmd(tmp_path), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            found = list((tmp_path / "flights").glob("*/imu.bin")) if (tmp_path / "flights").exists() else []
+            if found and found[0].stat().st_size > 30_000:
+                break
+            time.sleep(0.05)
+        killed_at_ns = time.time_ns()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        subprocess.run(["pkill", "-f", f"companion.sim.world.*{tmp_path}"], check=False)
+    fdir = flight_dir(tmp_path)
+    log = read_log(fdir / "imu.bin")
+    assert not log.closed_cleanly
+    t = log.data(1)["time_s"]
+    # every record older than 0.5 s before the kill is on disk and readable
+    assert len(t) > 100 and t[-1] > killed_at_ns / 1e9 - 0.5
