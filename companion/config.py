@@ -35,6 +35,21 @@ class DevicesConfig:
 @dataclass
 class VehicleConfig:
     id: int = 1
+    # Home (origin of the local NED frame): a surveyed launch point, or empty to take the first
+    # good GPS fix. SITL sets it to the simulator's start point so truth and estimate share a frame.
+    home: str = ""  # "lat_deg,lon_deg,alt_m"
+
+    def home_lla(self) -> tuple[float, float, float] | None:
+        """The configured home, or None; a malformed value is a ConfigError naming the key."""
+        if not self.home.strip():
+            return None
+        try:
+            lat, lon, alt = (float(v) for v in self.home.split(","))
+        except ValueError:
+            raise ConfigError(f"vehicle.home: expected 'lat_deg,lon_deg,alt_m', got {self.home!r}") from None
+        if not (-90 <= lat <= 90 and -180 <= lon <= 360):
+            raise ConfigError(f"vehicle.home: {self.home!r} is not a valid position")
+        return lat, lon, alt
 
 
 @dataclass

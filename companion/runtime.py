@@ -127,7 +127,7 @@ class Runtime:
             self.logs = LogService(self.flight_dir, clock_ns=clock.realtime_ns)
         self.ctx = RuntimeContext(clock=clock, params=params, logs=self.logs,
                                   state=VehicleState(), vehicle_id=cfg.vehicle.id,
-                                  flight_dir=self.flight_dir)
+                                  home_lla=cfg.vehicle.home_lla(), flight_dir=self.flight_dir)
         threads = build_threads(cfg) + build_computation(self.opts)
         self.manager = ThreadManager(self.ctx, threads)
         self.bridges: list[Any] = []

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from companion.sync import DataSlot, WaitableSlot
+from companion.sync import DataSlot, MessageQueue, WaitableSlot
 
 Vec3 = tuple[float, float, float]
 
@@ -128,6 +128,9 @@ class VehicleState:
     """All slots of one vehicle. Producers write, everyone else reads."""
 
     imu: WaitableSlot[ImuSample] = field(default_factory=WaitableSlot)
+    # every IMU sample, for the estimator, which must integrate all of them, not just the newest
+    imu_stream: MessageQueue[ImuSample] = field(
+        default_factory=lambda: MessageQueue(512, drop_oldest=True))
     imu_slow: DataSlot[ImuSlowSample] = field(default_factory=DataSlot)
     gps: WaitableSlot[GpsFix] = field(default_factory=WaitableSlot)
     servo: DataSlot[ServoState] = field(default_factory=DataSlot)

@@ -20,7 +20,7 @@ from companion.sim.flight import (
     TruthState,
     resolve_aircraft,
 )
-from companion.sim.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
+from companion.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
 from companion.sim.scenarios import (
     CHANNEL_COUNT,
     MODE_AUTO_THRESHOLD_US,

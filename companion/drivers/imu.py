@@ -63,8 +63,10 @@ class ImuDriver(SerialDevice):
                 sink(item)
             if isinstance(item, ImuFast):
                 got_fast += 1
-                state.imu.write(ImuSample(t_ns, item.counter, item.rates_rad_s, item.accel_m_s2,
-                                          item.gyro_ok, item.accel_ok))
+                sample = ImuSample(t_ns, item.counter, item.rates_rad_s, item.accel_m_s2,
+                                   item.gyro_ok, item.accel_ok)
+                state.imu.write(sample)
+                state.imu_stream.put(sample)
                 if tlog is not None:
                     tlog.log(FMT_FAST, item.counter, item.status, *item.rates_rad_s,
                              *item.accel_m_s2, t_ns=t_ns)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import jsbsim
 
-from companion.sim.geo import NedFrame
+from companion.geo import NedFrame
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ class TruthState:
     """True aircraft state at one instant, SI units.
 
     Frames: NED for positions and velocities (position relative to the start point, on the
-    tangent plane of :class:`companion.sim.geo.NedFrame`), body axes x forward, y right, z down
+    tangent plane of :class:`companion.geo.NedFrame`), body axes x forward, y right, z down
     for rates and specific force. Euler angles are the usual yaw-pitch-roll (3-2-1) sequence,
     ``yaw_rad`` in (-pi, pi] from true north. Body rates are inertial (what a gyro measures; they
     differ from earth-relative rates by at most the earth rate, 7.3e-5 rad/s). Specific force is

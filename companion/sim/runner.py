@@ -71,7 +71,7 @@ class WorldProcess:
         self.stats: dict[str, Any] = {}
         self.devices = self._wait_ready()
 
-    def _wait_ready(self) -> dict[str, str]:
+    def _wait_ready(self) -> dict[str, Any]:
         assert self.proc.stdout is not None
         result: dict[str, Any] = {}
         done = threading.Event()
@@ -117,6 +117,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             cfg.devices.imu.port = world.devices["imu"]
             cfg.devices.gps.port = world.devices["gps"]
             cfg.devices.servo.port = world.devices["servo"]
+            cfg.vehicle.home = ",".join(repr(float(v)) for v in world.devices["home"])
             rt = Runtime(cfg, RuntimeOptions(
                 clock=clock, flight_dir=flight_dir,
                 extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))

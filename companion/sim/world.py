@@ -389,7 +389,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     signal.signal(signal.SIGTERM, lambda *_: world.stop())
     signal.signal(signal.SIGINT, lambda *_: world.stop())
-    print("READY " + json.dumps({d: str(opts.device_dir / d) for d in DEVICES}), flush=True)
+    frame = world.model.frame
+    ready = {d: str(opts.device_dir / d) for d in DEVICES}
+    ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
+    print("READY " + json.dumps(ready), flush=True)
     stats = world.run()
     print("STATS " + json.dumps(stats), flush=True)
     return 0

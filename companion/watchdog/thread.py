@@ -59,6 +59,7 @@ class RuntimeContext:
     logs: Any = None  # companion.logs.LogService when logging is on
     state: VehicleState = field(default_factory=VehicleState)
     vehicle_id: int = 1
+    home_lla: tuple[float, float, float] | None = None  # NED origin; None = first GPS fix
     flight_dir: Path | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
