@@ -13,6 +13,7 @@ mapping as the pilot's sticks): aileron +1 rolls right, elevator +1 pitches the 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -103,8 +104,15 @@ class ControlThread(ManagedThread):
         self.pitch_pid.kp, self.pitch_pid.ki, self.pitch_pid.kd = g("PTCH_KP"), g("PTCH_KI"), g("PTCH_KD")
 
     def prologue(self) -> bool:
+        """Wait for the estimator's first output: until then there is nothing to control, and
+        the wait is not a stall."""
         self._tune()
         self._engaged = False
+        slot = self.ctx.state.estimator
+        while slot.read() is None:
+            if self.stop_event.wait(self.ctx.clock.to_host_s(0.05)):
+                return False
+        self._seen = 0
         return True
 
     def on_params_changed(self) -> None:
@@ -127,6 +135,7 @@ class ControlThread(ManagedThread):
             self._seen, self.ctx.clock.to_host_s(0.05))
         if got is None:
             return False
+        self.work_t0_ns = time.perf_counter_ns()  # step time excludes the wait
         est, self._seen = got
         if est is None:
             return False

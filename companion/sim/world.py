@@ -85,6 +85,7 @@ class WorldOptions:
     vanish: list[Vanish] = field(default_factory=list)
     imu_noise: bool = True
     auto_switch_s: float = 20.0
+    settle_s: float = 3.0
 
 
 class Pty:
@@ -141,8 +142,11 @@ class World:
         self.clock = Clock(opts.scale, opts.epoch)
         rng = np.random.default_rng(opts.seed)
         self.model = FlightModel(opts.aircraft, wind_ned_m_s=opts.wind_ned_m_s, seed=opts.seed)
+        trim_throttle = float(self.model.trim_controls.throttle)
         self.pilot = Pilot(opts.scenario, opts.seed, aircraft=opts.aircraft,
-                           auto_switch_s=opts.auto_switch_s)
+                           auto_switch_s=opts.auto_switch_s, trim_throttle=trim_throttle)
+        self.settle_sticks = [1500, 1500, int(round(1000 + 1000 * trim_throttle)), 1500,
+                              1000, 1500, 1500, 1500]
         imu_cfg = ImuSimConfig() if opts.imu_noise else ImuSimConfig(
             gyro_noise_rad_s=0.0, accel_noise_m_s2=0.0, gyro_bias_sigma_rad_s=0.0,
             accel_bias_sigma_m_s2=0.0, gyro_bias_walk_rad_s_sqrt_s=0.0,
@@ -280,7 +284,11 @@ class World:
         truth = model.truth()
         k = self.ticks
         if k % PILOT_EVERY == 0:
-            sticks = self.pilot.channels_us(self.t_s, truth)
+            # the pilot flies straight and level (centred sticks on a trimmed aircraft) while
+            # the runtime starts up, as a pilot would when the computer is switched on
+            settle = self.opts.settle_s
+            sticks = (self.pilot.channels_us(self.t_s - settle, truth) if self.t_s >= settle
+                      else self.settle_sticks)
             with self._board_lock:
                 self.board.set_pilot(sticks)
         with self._board_lock:
@@ -390,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: world.stop())
     signal.signal(signal.SIGINT, lambda *_: world.stop())
     frame = world.model.frame
-    ready = {d: str(opts.device_dir / d) for d in DEVICES}
+    ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in DEVICES}
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
     print("READY " + json.dumps(ready), flush=True)
     stats = world.run()

@@ -1,0 +1,36 @@
+"""Flight logs: the binary record format of the thesis (Appendix B), its writer, reader and tools.
+
+The contract is /work/shared/specs/log-format.md; user documentation is docs/logs.md.
+"""
+
+from __future__ import annotations
+
+from companion.logs.convert import convert_file
+from companion.logs.formats import FormatError, FormatSpec, parse_format
+from companion.logs.reader import (
+    Damage,
+    LogFile,
+    LogFormatError,
+    Marker,
+    Stream,
+    read_log,
+    read_log_bytes,
+)
+from companion.logs.writer import LogService, ThreadLog, write_run_json
+
+__all__ = [
+    "Damage",
+    "FormatError",
+    "FormatSpec",
+    "LogFile",
+    "LogFormatError",
+    "LogService",
+    "Marker",
+    "Stream",
+    "ThreadLog",
+    "convert_file",
+    "parse_format",
+    "read_log",
+    "read_log_bytes",
+    "write_run_json",
+]

@@ -1,0 +1,269 @@
+"""``companion logs ...``: convert binary logs to CSV, describe them, export them.
+
+Registered by the main CLI through `add_commands`; every handler returns the exit code:
+0 success, 1 a file could not be read or is damaged (unless ``--salvage``), 2 usage errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.logs.convert import convert_file, csv_name, format_time, input_files
+from companion.logs.reader import LogFile, LogFormatError, read_log
+
+__all__ = ["add_commands", "main"]
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Add ``convert``, ``info`` and ``export`` to the sub-parsers of the main CLI's ``logs``."""
+    c = sub.add_parser("convert", help="binary logs -> one CSV per format index")
+    c.add_argument(
+        "paths", nargs="+", metavar="FILE_OR_DIR", help="log files or directories of *.bin"
+    )
+    c.add_argument(
+        "-o", "--out-dir", type=Path, help="output directory (default: next to each input)"
+    )
+    c.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
+    c.set_defaults(func=cmd_convert)
+
+    i = sub.add_parser("info", help="formats, record counts, time span, markers, damage")
+    i.add_argument("path", type=Path, metavar="FILE")
+    i.add_argument("--salvage", action="store_true", help="read past damage and report it")
+    i.add_argument("--json", action="store_true", help="machine-readable output")
+    i.set_defaults(func=cmd_info)
+
+    e = sub.add_parser("export", help="export to Parquet (one file per format) or one .npz")
+    e.add_argument("path", type=Path, metavar="FILE")
+    e.add_argument("--to", choices=("parquet", "npz"), required=True)
+    e.add_argument(
+        "-o",
+        "--out",
+        type=Path,
+        help="npz: output file; parquet: output directory (default: next to FILE)",
+    )
+    e.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
+    e.set_defaults(func=cmd_export)
+
+
+def _read(path: Path, salvage: bool) -> LogFile | None:
+    try:
+        lf = read_log(path, salvage=salvage)
+    except LogFormatError as exc:
+        print(f"error: {exc} (use --salvage to skip damaged regions)", file=sys.stderr)
+        return None
+    except OSError as exc:
+        print(f"error: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+        return None
+    for w in lf.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    for d in lf.damage:
+        print(
+            f"warning: {path}: byte offset {d.offset}: {d.message}; skipped {d.skipped_bytes} bytes",
+            file=sys.stderr,
+        )
+    return lf
+
+
+class _Progress:
+    """A one-line progress counter on stderr, shown only on a terminal, at most 10 times/s."""
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.enabled = sys.stderr.isatty()
+        self.last = 0.0
+        self.shown = False
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.monotonic()
+        if not self.enabled or (now - self.last < 0.1 and done < total):
+            return
+        self.last = now
+        pct = 100.0 * done / total if total else 100.0
+        print(
+            f"\r{self.label}: {pct:5.1f}% ({done}/{total} records)",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
+        self.shown = True
+
+    def done(self) -> None:
+        if self.shown:
+            print(file=sys.stderr)
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    files = input_files(args.paths)
+    if not files:
+        print("error: no .bin/.uavlog files found in the given directories", file=sys.stderr)
+        return 1
+    status = 0
+    for path in files:
+        lf = _read(path, args.salvage)
+        if lf is None:
+            status = 1
+            continue
+        progress = _Progress(f"converting {path.name}")
+        try:
+            out = convert_file(path, args.out_dir, progress=progress, log_file=lf)
+        except OSError as exc:
+            progress.done()
+            print(f"error: writing CSV for {path}: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        progress.done()
+        for p in out:
+            print(p)
+    return status
+
+
+def _info_dict(lf: LogFile) -> dict[str, Any]:
+    times = [int(s.time_ns.min()) for s in lf.streams if s.n_records] + [
+        m.time_ns for m in lf.markers
+    ]
+    times_end = [int(s.time_ns.max()) for s in lf.streams if s.n_records] + [
+        m.time_ns for m in lf.markers
+    ]
+    return {
+        "file": lf.path,
+        "size_bytes": lf.size_bytes,
+        "records": lf.record_count,
+        "closed_cleanly": lf.closed_cleanly,
+        "start": format_time(min(times)) if times else None,
+        "end": format_time(max(times_end)) if times_end else None,
+        "span_s": (max(times_end) - min(times)) / 1e9 if times else None,
+        "formats": [
+            {
+                "index": s.index,
+                "stream": s.number,
+                "kind": s.kind,
+                "format": s.format,
+                "columns": list(s.columns),
+                "records": s.n_records,
+                "first": format_time(int(s.time_ns.min())) if s.n_records else None,
+                "last": format_time(int(s.time_ns.max())) if s.n_records else None,
+                "defined_at": s.definition_offset,
+            }
+            for s in lf.streams
+        ],
+        "begin_end": [
+            {
+                "begin": format_time(b.time_ns) if b else None,
+                "end": format_time(e.time_ns) if e else None,
+            }
+            for b, e in lf.begin_end_pairs()
+        ],
+        "truncated_bytes": lf.truncated_bytes,
+        "damage": [
+            {
+                "offset": d.offset,
+                "kind": d.kind,
+                "message": d.message,
+                "skipped_bytes": d.skipped_bytes,
+            }
+            for d in lf.damage
+        ],
+    }
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    lf = _read(args.path, args.salvage)
+    if lf is None:
+        return 1
+    info = _info_dict(lf)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    print(
+        f"file:            {info['file']} ({info['size_bytes']} bytes, {info['records']} records)"
+    )
+    print(f"closed cleanly:  {'yes' if info['closed_cleanly'] else 'no'}")
+    if info["start"] is not None:
+        print(f"time span:       {info['start']} .. {info['end']} s ({info['span_s']:.3f} s)")
+    print(f"begin/end pairs: {len(info['begin_end'])}")
+    for k, pair in enumerate(info["begin_end"], 1):
+        print(f"  {k}: {pair['begin'] or '(none)'} .. {pair['end'] or '(not ended)'}")
+    print("formats:")
+    for f in info["formats"]:
+        tag = f"{f['index']}" + (f".{f['stream']}" if f["stream"] > 1 else "")
+        print(f"  [{tag}] {f['kind']:5s} {f['records']:>9d} records  format {f['format']!r}")
+        print(f"        columns: {','.join(f['columns'])}")
+        if f["first"] is not None:
+            print(f"        time: {f['first']} .. {f['last']}")
+    if lf.truncated_bytes:
+        print(f"truncated tail:  {lf.truncated_bytes} bytes dropped")
+    if info["damage"]:
+        print(f"damage:          {len(info['damage'])} region(s), {lf.skipped_bytes} bytes skipped")
+        for d in info["damage"]:
+            print(
+                f"  byte offset {d['offset']}: {d['message']} ({d['skipped_bytes']} bytes skipped)"
+            )
+    else:
+        print("damage:          none")
+    return 0
+
+
+def _key(index: int, number: int) -> str:
+    return f"fmt{index}" if number == 1 else f"fmt{index}_{number}"
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    lf = _read(args.path, args.salvage)
+    if lf is None:
+        return 1
+    stem = args.path.stem
+    try:
+        if args.to == "npz":
+            out = args.out or args.path.with_suffix(".npz")
+            arrays: dict[str, np.ndarray] = {}
+            for s in lf.streams:
+                arrays[_key(s.index, s.number)] = s.data
+                arrays[_key(s.index, s.number) + "_time_ns"] = s.time_ns
+            arrays["markers"] = np.array(
+                [(m.kind, m.time_ns, m.offset) for m in lf.markers],
+                dtype=[("kind", "U5"), ("time_ns", "<i8"), ("offset", "<i8")],
+            )
+            np.savez(out, **arrays)  # type: ignore[arg-type]
+            print(out)
+            return 0
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        out_dir = args.out or args.path.parent
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for s in lf.streams:
+            frame = s.to_pandas()
+            if s.kind == "block":
+                frame.insert(1, "time_ns", s.time_ns)
+            table = pa.Table.from_pandas(frame, preserve_index=False)
+            meta = dict(table.schema.metadata or {})
+            meta[b"uavlog"] = json.dumps(
+                {"index": s.index, "kind": s.kind, "format": s.format, "columns": list(s.columns)}
+            ).encode()
+            table = table.replace_schema_metadata(meta)
+            path = out_dir / csv_name(stem, s.index, s.number).replace(".csv", ".parquet")
+            pq.write_table(table, path)
+            print(path)
+    except OSError as exc:
+        print(f"error: export of {args.path}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry: ``python -m companion.logs.cli info FILE`` = ``companion logs info FILE``."""
+    parser = argparse.ArgumentParser(prog="companion logs", description=__doc__)
+    add_commands(parser.add_subparsers(metavar="ACTION", required=True))
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,830 @@
+"""Reader of binary flight logs: whole file in, one numpy structured array per format out.
+
+How it stays fast: record boundaries are a chain (each header gives the size of its record), so
+one tight pass over the headers finds them all; everything else (which definition applies to
+each record, validation, field extraction) is done with numpy over all records at once, and
+each format's fields come out of the file bytes with one gather and one `view`.
+
+How it stays safe: every loop advances through the file, every allocation is proportional to
+the file size, and anything the contract calls corruption raises `LogFormatError` with the byte
+offset, or, with ``salvage=True``, is skipped up to the next offset where a plausible record
+starts and recorded in `LogFile.damage`.
+
+Layout of the results (see docs/logs.md):
+
+* A Data Block format gives a structured array with ``time_s`` (float64 seconds) followed by one
+  typed field per conversion, named from the Format Comment (else ``c1, c2, ...``).
+* A Byte Array format gives a "long" structured array, one row per element: ``time_s``,
+  ``record`` (the record's number in its stream), ``element`` (position in the record) and the
+  value (named from a one-name comment, else ``value``). `Stream.arrays()` gives one 1-D array
+  per record instead.
+* Redefining an index: records are grouped into *streams* by (index, record kind, format string,
+  column names); a redefinition that changes any of these starts a new stream, an identical one
+  continues the old stream. `LogFile.data(index)` concatenates the streams of an index when they
+  share one layout and otherwise refuses and points at `LogFile.streams_of(index)`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from array import array
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from companion.logs.formats import FormatError, FormatSpec, parse_format
+from companion.logs.records import (
+    ARRAY,
+    ARRAY_ALT,
+    BEGIN,
+    COMMENT,
+    DATA,
+    DEFINITION,
+    END,
+    HEADER_SIZE,
+    KNOWN_TYPES,
+    TIMED_SIZE,
+    TYPE_NAMES,
+)
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+__all__ = [
+    "Damage",
+    "LogFile",
+    "LogFormatError",
+    "Marker",
+    "Stream",
+    "column_names",
+    "framed_length",
+    "read_log",
+    "read_log_bytes",
+]
+
+log = logging.getLogger(__name__)
+
+_NS = 1_000_000_000
+_UNKNOWN = 1 << 62  # size of an unknown record type in the boundary pass: always "past the end"
+_SIZES = [_UNKNOWN] * 256
+for _t in (BEGIN, END, DATA, ARRAY, ARRAY_ALT):
+    _SIZES[_t] = TIMED_SIZE
+for _t in (COMMENT, DEFINITION):
+    _SIZES[_t] = HEADER_SIZE
+_KNOWN_LUT = np.zeros(256, dtype=bool)
+_KNOWN_LUT[list(KNOWN_TYPES)] = True
+_SALVAGE_WINDOW = 1024  # bytes parsed after a resynchronisation before validating (doubles)
+_SEARCH_WINDOW = 1 << 16  # most bytes examined at once when looking for a plausible record
+
+
+class LogFormatError(ValueError):
+    """A damaged or malformed log; carries the file name, the byte offset and the kind.
+
+    kind is one of: unknown_type, past_eof, undefined_index, length_mismatch, bad_definition.
+    """
+
+    def __init__(self, path: str, offset: int, message: str, kind: str) -> None:
+        self.path = path
+        self.offset = offset
+        self.reason = message
+        self.kind = kind
+        super().__init__(f"{path}: byte offset {offset}: {message}")
+
+
+@dataclass(frozen=True)
+class Marker:
+    """A Begin Data or End Data record."""
+
+    kind: str  # "begin" or "end"
+    time_ns: int
+    offset: int
+
+    @property
+    def time_s(self) -> float:
+        return self.time_ns / _NS
+
+
+@dataclass(frozen=True)
+class Damage:
+    """A corrupt region skipped by a salvaging read."""
+
+    offset: int
+    kind: str
+    message: str
+    skipped_bytes: int
+
+
+@dataclass
+class Stream:
+    """The records of one format index under one definition (see the module docstring)."""
+
+    index: int
+    kind: str  # "block" (Data Block) or "array" (Byte Array)
+    spec: FormatSpec
+    columns: tuple[str, ...]
+    number: int  # 1 for the first stream of its index, 2 for the next...
+    definition_offset: int
+    data: np.ndarray
+    time_ns: np.ndarray  # int64 per record, exact
+    offsets: np.ndarray  # int64 byte offset of each record
+    lengths: np.ndarray | None = None  # elements per record (arrays only)
+
+    @property
+    def format(self) -> str:
+        return self.spec.text
+
+    @property
+    def n_records(self) -> int:
+        return int(self.offsets.size)
+
+    @property
+    def value_field(self) -> str:
+        """For arrays, the name of the element field of `data`."""
+        return self.columns[0]
+
+    def arrays(self) -> list[np.ndarray]:
+        """One 1-D array of elements per record (arrays only)."""
+        if self.kind != "array" or self.lengths is None:
+            raise ValueError(f"format index {self.index} holds Data Blocks, not Byte Arrays")
+        values = self.data[self.value_field]
+        return np.split(values, np.cumsum(self.lengths)[:-1]) if self.lengths.size else []
+
+    def to_pandas(self) -> pd.DataFrame:
+        import pandas as pd
+
+        return pd.DataFrame({name: self.data[name] for name in self.data.dtype.names or ()})
+
+
+@dataclass
+class LogFile:
+    """Everything read from one binary log."""
+
+    path: str
+    size_bytes: int
+    streams: list[Stream]
+    markers: list[Marker]
+    damage: list[Damage]
+    truncated_bytes: int
+    record_count: int
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def indexes(self) -> list[int]:
+        return sorted({s.index for s in self.streams})
+
+    @property
+    def closed_cleanly(self) -> bool:
+        """True when the last marker is an End Data and no record was cut short."""
+        return bool(self.markers) and self.markers[-1].kind == "end" and not self.truncated_bytes
+
+    @property
+    def skipped_bytes(self) -> int:
+        return sum(d.skipped_bytes for d in self.damage)
+
+    @property
+    def skipped_records(self) -> int:
+        """Corrupt records skipped by salvage (one per damaged region)."""
+        return len(self.damage)
+
+    def streams_of(self, index: int) -> list[Stream]:
+        found = [s for s in self.streams if s.index == index]
+        if not found:
+            raise KeyError(f"{self.path}: no format index {index} (have {self.indexes})")
+        return found
+
+    def begin_end_pairs(self) -> list[tuple[Marker | None, Marker | None]]:
+        """Begin/End markers paired in file order; a missing half is None."""
+        pairs: list[tuple[Marker | None, Marker | None]] = []
+        pending: Marker | None = None
+        for m in self.markers:
+            if m.kind == "begin":
+                if pending is not None:
+                    pairs.append((pending, None))
+                pending = m
+            else:
+                pairs.append((pending, m))
+                pending = None
+        if pending is not None:
+            pairs.append((pending, None))
+        return pairs
+
+    def data(self, index: int) -> np.ndarray:
+        """The structured array of a format index (all its streams, when they share a layout)."""
+        streams = self.streams_of(index)
+        if len(streams) == 1:
+            return streams[0].data
+        first = streams[0]
+        for s in streams[1:]:
+            if s.data.dtype != first.data.dtype or s.kind != first.kind:
+                raise ValueError(
+                    f"{self.path}: format index {index} changes layout at byte offset "
+                    f"{s.definition_offset} ({first.format!r} -> {s.format!r}); "
+                    f"use streams_of({index}) or to_pandas({index})"
+                )
+        if first.kind == "array":
+            raise ValueError(
+                f"{self.path}: format index {index} has {len(streams)} array streams; "
+                f"use streams_of({index})"
+            )
+        offsets = np.concatenate([s.offsets for s in streams])
+        order = np.argsort(offsets, kind="stable")
+        return np.concatenate([s.data for s in streams])[order]
+
+    __getitem__ = data
+
+    def time_ns(self, index: int) -> np.ndarray:
+        """Exact record times (int64 ns) of a format index, in file order."""
+        streams = self.streams_of(index)
+        offsets = np.concatenate([s.offsets for s in streams])
+        times = np.concatenate([s.time_ns for s in streams])
+        return times[np.argsort(offsets, kind="stable")]
+
+    def to_pandas(self, index: int) -> pd.DataFrame:
+        """A DataFrame of a format index; streams with other columns are aligned (NaN-filled)."""
+        import pandas as pd
+
+        streams = self.streams_of(index)
+        frames = [s.to_pandas() for s in streams]
+        if len(frames) == 1:
+            return frames[0]
+        keys = np.concatenate(
+            [s.offsets if s.lengths is None else np.repeat(s.offsets, s.lengths) for s in streams]
+        )
+        frame = pd.concat(frames, ignore_index=True)
+        return frame.iloc[np.argsort(keys, kind="stable")].reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Version:
+    """The definition state of one index from one FD/FC record on."""
+
+    index: int
+    offset: int
+    spec: FormatSpec | None
+    comment: tuple[str, ...] | None
+
+
+def _scan(buf: bytes, start: int, stop: int) -> tuple[array[int], int, str]:
+    """Follow the record chain from `start`; the hot loop of the reader.
+
+    Returns the offsets of the records that fit in the file, the offset where it stopped, and
+    why: "eof", "window" (reached `stop`), "unknown" (unknown type), "past_eof" (record longer
+    than the rest of the file) or "cut_header" (fewer than 4 bytes left).
+    """
+    n = len(buf)
+    sizes = _SIZES
+    out: array[int] = array("q")
+    app = out.append
+    off = start
+    limit = min(stop, n - 3)
+    while off < limit:
+        nxt = off + sizes[buf[off]] + (buf[off + 2] | (buf[off + 3] << 8))
+        if nxt > n:
+            break
+        app(off)
+        off = nxt
+    else:
+        if off == n:
+            return out, off, "eof"
+        if off >= stop:
+            return out, off, "window"
+        return out, off, "cut_header"
+    return out, off, ("unknown" if sizes[buf[off]] == _UNKNOWN else "past_eof")
+
+
+def framed_length(buf: bytes) -> int:
+    """Length of the longest prefix of `buf` made of whole records (framing only)."""
+    _, off, reason = _scan(buf, 0, len(buf))
+    return len(buf) if reason == "eof" else off
+
+
+def _clean_names(names: list[str], count: int) -> tuple[str, ...]:
+    out: list[str] = []
+    seen = {"time_s"}
+    for k in range(count):
+        name = names[k].strip() if k < len(names) else ""
+        if not name:
+            name = f"c{k + 1}"
+        base, n = name, 2
+        while name in seen:
+            name = f"{base}_{n}"
+            n += 1
+        seen.add(name)
+        out.append(name)
+    return tuple(out)
+
+
+def column_names(comment: Sequence[str] | None, spec: FormatSpec, kind: str) -> tuple[str, ...]:
+    """Field names of a stream from its Format Comment (shared with the text-mode writer).
+
+    Data Blocks: the comment's names when there is one per field (blank ones become ``c<k>``,
+    repeats and ``time_s`` get a ``_2`` suffix), else ``c1, c2, ...``. Byte Arrays: the single
+    name of a one-name comment (unless it is time_s, record or element), else ``value``.
+    """
+    names = [n.strip() for n in comment] if comment is not None else []
+    if kind == "array":
+        name = names[0] if len(names) == 1 else ""
+        return (name if name and name not in ("time_s", "record", "element") else "value",)
+    if len(names) != spec.n_fields:
+        names = []
+    return _clean_names(names, spec.n_fields)
+
+
+class _Parser:
+    def __init__(self, buf: bytes, path: str, salvage: bool) -> None:
+        self.buf = buf
+        self.n = len(buf)
+        self.arr = np.frombuffer(buf, dtype=np.uint8)
+        self.path = path
+        self.salvage = salvage
+        self.versions: list[_Version] = []
+        self.current = np.full(256, -1, dtype=np.int64)  # version id in force per index
+        self.markers: list[Marker] = []
+        self.damage: list[Damage] = []
+        self.warnings: list[str] = []
+        self.truncated = 0
+        self.record_count = 0
+        self.chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._warned_columns: set[int] = set()
+        # Per version id: data size (-1: comment only, no format yet) and Byte-Array fitness.
+        self._vsize = np.full(16, -1, dtype=np.int64)
+        self._vbytes = np.zeros(16, dtype=bool)
+
+    # -- the main loop ---------------------------------------------------------------------
+
+    def run(self) -> LogFile:
+        pos = 0
+        window = self.n  # unbounded until a resynchronisation
+        while pos < self.n:
+            stop = pos + window if window < self.n else self.n
+            offs, stop_off, reason = _scan(self.buf, pos, stop)
+            found = np.frombuffer(offs, dtype=np.int64) if len(offs) else np.zeros(0, np.int64)
+            err = self._commit(found)
+            if err is not None:
+                pos = self._corrupt(*err)
+                window = _SALVAGE_WINDOW
+                continue
+            if reason == "eof":
+                break
+            if reason == "window":
+                pos = stop_off
+                window *= 2
+                continue
+            if reason == "unknown":
+                pos = self._corrupt(
+                    stop_off,
+                    "unknown_type",
+                    f"unknown record type 0x{self.buf[stop_off]:02X}",
+                )
+                window = _SALVAGE_WINDOW
+                continue
+            tail = self._tail(stop_off)
+            if tail is None:
+                self.truncated = self.n - stop_off
+                msg = (
+                    f"{self.path}: last record at byte offset {stop_off} is cut short "
+                    f"({self.truncated} bytes dropped)"
+                )
+                self.warnings.append(msg)
+                log.warning(msg)
+                break
+            pos = self._corrupt(stop_off, *tail)
+            window = _SALVAGE_WINDOW
+        return self._finish()
+
+    def _corrupt(self, offset: int, kind: str, message: str) -> int:
+        if not self.salvage:
+            raise LogFormatError(self.path, offset, message, kind)
+        nxt = self._find_plausible(offset + 1, self.n)
+        self.damage.append(Damage(offset, kind, message, nxt - offset))
+        log.warning(
+            "%s: byte offset %d: %s; skipped %d bytes", self.path, offset, message, nxt - offset
+        )
+        return nxt
+
+    # -- validation of a chunk of framed records -------------------------------------------
+
+    def _time_at(self, off: int) -> int:
+        sec = int.from_bytes(self.buf[off + 4 : off + 8], "little", signed=True)
+        nsec = int.from_bytes(self.buf[off + 8 : off + 12], "little")
+        return sec * _NS + nsec
+
+    def _new_version(
+        self, index: int, off: int, spec: FormatSpec | None, comment: tuple[str, ...] | None
+    ) -> int:
+        self.versions.append(_Version(index, off, spec, comment))
+        vid = len(self.versions) - 1
+        self.current[index] = vid
+        if vid >= self._vsize.size:
+            self._vsize = np.concatenate([self._vsize, np.full_like(self._vsize, -1)])
+            self._vbytes = np.concatenate([self._vbytes, np.zeros_like(self._vbytes)])
+        self._vsize[vid] = spec.size if spec is not None else -1
+        self._vbytes[vid] = bool(spec is not None and spec.byte_array_ok)
+        return vid
+
+    def _control(self, off: int) -> tuple[str, str] | None:
+        """Apply one control record; returns (kind, message) when it is corrupt."""
+        buf = self.buf
+        rtype, index = buf[off], buf[off + 1]
+        length = buf[off + 2] | (buf[off + 3] << 8)
+        if rtype in (BEGIN, END):
+            if length:
+                return "length_mismatch", f"{TYPE_NAMES[rtype]} with length {length} (must be 0)"
+            kind = "begin" if rtype == BEGIN else "end"
+            self.markers.append(Marker(kind, self._time_at(off), off))
+            return None
+        if index == 0:
+            return "bad_definition", f"{TYPE_NAMES[rtype]} for format index 0 (must be 1..255)"
+        body = buf[off + HEADER_SIZE : off + HEADER_SIZE + length].rstrip(b"\x00")
+        cur = int(self.current[index])
+        prev = self.versions[cur] if cur >= 0 else None
+        if rtype == COMMENT:
+            names = tuple(body.decode("utf-8", errors="replace").split(","))
+            if prev is None or prev.comment != names:  # a repeat changes nothing
+                self._new_version(index, off, prev.spec if prev else None, names)
+            return None
+        try:
+            spec = parse_format(body.decode("latin-1"))
+        except FormatError as exc:
+            return "bad_definition", f"bad Format Definition for index {index}: {exc}"
+        if prev is None or prev.spec != spec:
+            self._new_version(index, off, spec, prev.comment if prev else None)
+        return None
+
+    def _commit(self, offs: np.ndarray) -> tuple[int, str, str] | None:
+        """Validate and keep framed records up to the first corrupt one (returned)."""
+        if offs.size == 0:
+            return None
+        arr = self.arr
+        types = arr[offs]
+        idx = arr[offs + 1].astype(np.int64)
+        lens = arr[offs + 2].astype(np.int64) | (arr[offs + 3].astype(np.int64) << 8)
+        is_data = (types == DATA) | (types == ARRAY) | (types == ARRAY_ALT)
+        ctrl = np.flatnonzero(~is_data)
+        start_current = self.current.copy()
+        n_versions0 = len(self.versions)
+        n_markers0 = len(self.markers)
+        err_pos = offs.size
+        err: tuple[str, str] | None = None
+        ev_pos: list[int] = []
+        for p in ctrl.tolist():
+            before = len(self.versions)
+            err = self._control(int(offs[p]))
+            if err is not None:
+                err_pos = p
+                break
+            if len(self.versions) > before:
+                ev_pos.append(p)
+        # Which version is in force for each data record: the last event of its index before it.
+        data_pos = np.flatnonzero(is_data[:err_pos])
+        d_idx = idx[data_pos]
+        vid = start_current[d_idx]
+        if ev_pos:
+            ev_p = np.asarray(ev_pos, dtype=np.int64)
+            ev_vid = np.arange(n_versions0, len(self.versions), dtype=np.int64)
+            ev_idx = idx[ev_p]
+            span = offs.size + 1
+            ev_key = ev_idx * span + ev_p
+            order = np.argsort(ev_key, kind="stable")
+            ev_key, ev_vid, ev_idx = ev_key[order], ev_vid[order], ev_idx[order]
+            j = np.searchsorted(ev_key, d_idx * span + data_pos, side="right") - 1
+            jc = np.clip(j, 0, None)
+            hit = (j >= 0) & (ev_idx[jc] == d_idx)
+            vid = np.where(hit, ev_vid[jc], vid)
+        sizes, array_ok = self._vsize, self._vbytes
+        vidc = np.clip(vid, 0, None)
+        has_spec = (vid >= 0) & (sizes[vidc] >= 0)
+        d_types = types[data_pos]
+        bad_undef = ~has_spec
+        bad_len = has_spec & (d_types == DATA) & (lens[data_pos] != sizes[vidc])
+        bad_arr = has_spec & (d_types != DATA) & ~array_ok[vidc]
+        bad = bad_undef | bad_len | bad_arr
+        if bad.any():
+            k = int(np.argmax(bad))
+            p = int(data_pos[k])
+            index = int(idx[p])
+            name = TYPE_NAMES[int(types[p])]
+            vspec = self.versions[int(vid[k])].spec if vid[k] >= 0 else None
+            text = vspec.text if vspec is not None else ""
+            if bad_undef[k]:
+                err = "undefined_index", f"{name} for format index {index}, which has no definition"
+            elif bad_len[k]:
+                err = (
+                    "length_mismatch",
+                    f"Data Block of {int(lens[p])} bytes for format index {index}, "
+                    f"whose format {text!r} needs {int(sizes[vidc[k]])}",
+                )
+            else:
+                err = (
+                    "length_mismatch",
+                    f"{name} for format index {index}, whose format {text!r} "
+                    f"is not one 1-byte conversion",
+                )
+            err_pos = p
+        if err_pos < offs.size:
+            self._rollback(int(offs[err_pos]), start_current, n_versions0, n_markers0)
+        keep = data_pos < err_pos
+        if keep.any():
+            kp = data_pos[keep]
+            self.chunks.append((offs[kp], types[kp], lens[kp], vid[keep]))
+        self.record_count += err_pos
+        if err is not None:
+            return int(offs[err_pos]), err[0], err[1]
+        return None
+
+    def _rollback(
+        self, offset: int, start_current: np.ndarray, n_versions0: int, n_markers0: int
+    ) -> None:
+        """Forget definitions and markers read at or after `offset` (past a corrupt record)."""
+        while len(self.versions) > n_versions0 and self.versions[-1].offset >= offset:
+            self.versions.pop()
+        self.current = start_current
+        for vid in range(n_versions0, len(self.versions)):
+            self.current[self.versions[vid].index] = vid
+        while len(self.markers) > n_markers0 and self.markers[-1].offset >= offset:
+            self.markers.pop()
+
+    # -- the end of the file and resynchronisation -----------------------------------------
+
+    def _spec_of(self, index: int) -> FormatSpec | None:
+        vid = int(self.current[index])
+        return self.versions[vid].spec if vid >= 0 else None
+
+    def _tail(self, off: int) -> tuple[str, str] | None:
+        """Classify a record that does not fit in the file: None for a cut-short last record."""
+        buf, n = self.buf, self.n
+        rtype = buf[off]
+        if rtype not in KNOWN_TYPES:
+            return "unknown_type", f"unknown record type 0x{rtype:02X}"
+        if n - off < HEADER_SIZE:
+            return None
+        index = buf[off + 1]
+        length = buf[off + 2] | (buf[off + 3] << 8)
+        name = TYPE_NAMES[rtype]
+        if rtype in (BEGIN, END):
+            if length:
+                return "length_mismatch", f"{name} with length {length} (must be 0)"
+            return None
+        if rtype in (DATA, ARRAY, ARRAY_ALT):
+            spec = self._spec_of(index)
+            if spec is None:
+                return (
+                    "undefined_index",
+                    f"{name} for format index {index}, which has no definition",
+                )
+            if rtype == DATA:
+                if length != spec.size:
+                    return (
+                        "length_mismatch",
+                        f"Data Block of {length} bytes for format index {index}, whose format "
+                        f"{spec.text!r} needs {spec.size}",
+                    )
+                return None
+            if not spec.byte_array_ok:
+                return (
+                    "length_mismatch",
+                    f"{name} for format index {index}, whose format {spec.text!r} "
+                    f"is not one 1-byte conversion",
+                )
+        elif index == 0:
+            return "bad_definition", f"{name} for format index 0 (must be 1..255)"
+        # Variable-length record: cut short only if nothing plausible follows inside it.
+        if self._find_plausible(off + 1, n) < n:
+            return (
+                "past_eof",
+                f"{name} of length {length} runs past the end of the file ({n} bytes)",
+            )
+        return None
+
+    def _plausible(self, p: int) -> bool:
+        buf, n = self.buf, self.n
+        if p + HEADER_SIZE > n:
+            return False
+        rtype, index = buf[p], buf[p + 1]
+        length = buf[p + 2] | (buf[p + 3] << 8)
+        if rtype in (COMMENT, DEFINITION):
+            end = p + HEADER_SIZE + length
+            if index == 0 or length == 0 or end > n:
+                return False
+            body = buf[p + HEADER_SIZE : end]
+            if b"\x00" in body:
+                return False
+            try:
+                text = body.decode("utf-8")
+                if rtype == DEFINITION:
+                    parse_format(text)
+            except (UnicodeDecodeError, FormatError):
+                return False
+        else:
+            if rtype in (BEGIN, END):
+                if index or length:
+                    return False
+                end = p + TIMED_SIZE
+            else:
+                spec = self._spec_of(index)
+                if spec is None:
+                    return False
+                if rtype == DATA and length != spec.size:
+                    return False
+                if rtype != DATA and not spec.byte_array_ok:
+                    return False
+                end = p + TIMED_SIZE + length
+            if end > n or int.from_bytes(buf[p + 8 : p + 12], "little") >= _NS:
+                return False
+        return end == n or bool(_KNOWN_LUT[buf[end]])
+
+    def _find_plausible(self, start: int, stop: int) -> int:
+        """First offset in [start, stop) where a plausible record starts, else `stop`."""
+        pos = start
+        window = 64  # grows: damage is usually short, but the search must stay linear
+        while pos < stop:
+            end = min(stop, pos + window)
+            cands = np.flatnonzero(_KNOWN_LUT[self.arr[pos:end]])
+            for c in cands.tolist():
+                if self._plausible(pos + c):
+                    return pos + c
+            pos = end
+            window = min(window * 2, _SEARCH_WINDOW)
+        return stop
+
+    # -- building the arrays ---------------------------------------------------------------
+
+    def _columns(self, vid: int, kind: str) -> tuple[str, ...]:
+        v = self.versions[vid]
+        assert v.spec is not None
+        count = v.spec.n_fields
+        if (
+            kind == "block"
+            and v.comment is not None
+            and len(v.comment) != count
+            and vid not in self._warned_columns
+        ):
+            self._warned_columns.add(vid)
+            msg = (
+                f"{self.path}: Format Comment of index {v.index} names {len(v.comment)} columns "
+                f"for {count} fields; they are named c1..c{count} instead"
+            )
+            self.warnings.append(msg)
+            log.warning(msg)
+        return column_names(v.comment, v.spec, kind)
+
+    def _finish(self) -> LogFile:
+        streams: list[Stream] = []
+        if self.chunks:
+            offs = np.concatenate([c[0] for c in self.chunks])
+            types = np.concatenate([c[1] for c in self.chunks])
+            lens = np.concatenate([c[2] for c in self.chunks])
+            vids = np.concatenate([c[3] for c in self.chunks])
+        else:
+            offs = types = lens = vids = np.zeros(0, dtype=np.int64)
+        is_block = types == DATA
+        # Streams in order of their first record; (version, kind) pairs map onto them.
+        key_of: dict[tuple[int, str, str, tuple[str, ...]], int] = {}
+        stream_keys: list[tuple[int, str, tuple[str, ...], int]] = []
+        pair = vids * 2 + (~is_block).astype(np.int64)
+        uniq, first = np.unique(pair, return_index=True)
+        stream_of_pair: dict[int, int] = {}
+        for pv in uniq[np.argsort(first, kind="stable")].tolist():
+            vid, kind = pv // 2, ("array" if pv % 2 else "block")
+            spec = self.versions[vid].spec
+            assert spec is not None
+            columns = self._columns(vid, kind)
+            key = (self.versions[vid].index, kind, spec.text, columns)
+            if key not in key_of:
+                key_of[key] = len(stream_keys)
+                stream_keys.append((self.versions[vid].index, kind, columns, vid))
+            stream_of_pair[pv] = key_of[key]
+        sid = np.zeros(offs.size, dtype=np.int64)
+        if uniq.size:
+            lut = np.array([stream_of_pair[int(pv)] for pv in uniq], dtype=np.int64)
+            sid = lut[np.searchsorted(uniq, pair)]
+        order = np.argsort(sid, kind="stable")
+        bounds = np.searchsorted(sid[order], np.arange(len(stream_keys) + 1))
+        numbers: dict[int, int] = {}
+        for s, (index, kind, columns, vid) in enumerate(stream_keys):
+            rows = order[bounds[s] : bounds[s + 1]]
+            numbers[index] = numbers.get(index, 0) + 1
+            spec = self.versions[vid].spec
+            assert spec is not None
+            builder = self._block if kind == "block" else self._array
+            streams.append(
+                builder(
+                    index,
+                    spec,
+                    columns,
+                    numbers[index],
+                    self.versions[vid].offset,
+                    offs[rows],
+                    lens[rows],
+                )
+            )
+        # Formats that were defined but never used still show up, with no records.
+        used = {s.index for s in streams}
+        for index in range(1, 256):
+            vid = int(self.current[index])
+            if index in used or vid < 0:
+                continue
+            spec = self.versions[vid].spec
+            if spec is None:
+                continue
+            empty = np.zeros(0, dtype=np.int64)
+            columns = self._columns(vid, "block")
+            streams.append(
+                self._block(index, spec, columns, 1, self.versions[vid].offset, empty, empty)
+            )
+        streams.sort(key=lambda s: (s.index, s.number))
+        if not self.markers or self.markers[-1].kind != "end":
+            self.warnings.append(f"{self.path}: not closed cleanly (no End Data at the end)")
+        return LogFile(
+            path=self.path,
+            size_bytes=self.n,
+            streams=streams,
+            markers=self.markers,
+            damage=self.damage,
+            truncated_bytes=self.truncated,
+            record_count=self.record_count,
+            warnings=self.warnings,
+        )
+
+    def _times(self, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if offs.size == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.float64)
+        win = sliding_window_view(self.arr, 8)[offs + 4]
+        t = win.view(np.dtype([("s", "<i4"), ("ns", "<u4")])).reshape(-1)
+        sec = t["s"].astype(np.int64)
+        nsec = t["ns"].astype(np.int64)
+        return sec * _NS + nsec, sec.astype(np.float64) + nsec.astype(np.float64) / 1e9
+
+    def _block(
+        self,
+        index: int,
+        spec: FormatSpec,
+        columns: tuple[str, ...],
+        number: int,
+        def_off: int,
+        offs: np.ndarray,
+        lens: np.ndarray,
+    ) -> Stream:
+        time_ns, time_s = self._times(offs)
+        fields = [(c, d) for c, d in zip(columns, spec.field_dtypes, strict=True)]
+        out = np.empty(offs.size, dtype=np.dtype([("time_s", "<f8"), *fields]))
+        out["time_s"] = time_s
+        if offs.size and spec.size:
+            raw = sliding_window_view(self.arr, spec.size)[offs + TIMED_SIZE]
+            packed = raw.view(spec.dtype(columns)).reshape(-1)
+            for c in columns:
+                out[c] = packed[c]
+        return Stream(index, "block", spec, columns, number, def_off, out, time_ns, offs)
+
+    def _array(
+        self,
+        index: int,
+        spec: FormatSpec,
+        columns: tuple[str, ...],
+        number: int,
+        def_off: int,
+        offs: np.ndarray,
+        lens: np.ndarray,
+    ) -> Stream:
+        time_ns, time_s = self._times(offs)
+        total = int(lens.sum())
+        dtype = spec.field_dtypes[0]
+        out = np.empty(
+            total,
+            dtype=np.dtype(
+                [("time_s", "<f8"), ("record", "<u4"), ("element", "<u2"), (columns[0], dtype)]
+            ),
+        )
+        before = np.cumsum(lens) - lens
+        rep_before = np.repeat(before, lens)
+        positions = np.repeat(offs + TIMED_SIZE, lens) + (np.arange(total) - rep_before)
+        out[columns[0]] = self.arr[positions].view(dtype)
+        out["time_s"] = np.repeat(time_s, lens)
+        out["record"] = np.repeat(np.arange(offs.size), lens)
+        out["element"] = np.arange(total) - rep_before
+        return Stream(
+            index, "array", spec, columns, number, def_off, out, time_ns, offs, lens.copy()
+        )
+
+
+def read_log_bytes(data: bytes, *, name: str = "<bytes>", salvage: bool = False) -> LogFile:
+    """Read a binary log held in memory; `name` is used in messages."""
+    return _Parser(bytes(data), name, salvage).run()
+
+
+def read_log(path: str | os.PathLike[str], *, salvage: bool = False) -> LogFile:
+    """Read a binary log file.
+
+    Raises LogFormatError (with the file name and byte offset) on corruption unless `salvage`;
+    a cut-short last record is dropped with a warning either way.
+    """
+    p = Path(path)
+    return read_log_bytes(p.read_bytes(), name=str(p), salvage=salvage)
