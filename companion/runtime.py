@@ -233,7 +233,7 @@ class Runtime:
 def declared_registry(cfg: Config) -> ParamRegistry:
     """Every parameter the runtime would declare for `cfg`, at its default, without running."""
     rt = Runtime(cfg, RuntimeOptions(dry=True))
-    rt.manager.shutdown()
+    rt.shutdown()
     return rt.ctx.params
 
 

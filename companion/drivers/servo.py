@@ -48,6 +48,7 @@ class ServoDriver(SerialDevice):
         self.answer_timeout_s = 0.015
         self.missed_answers = 0
         self.match_seq = True  # replaying a capture: accept answers to commands never sent
+        self._last_cmd: ServoCommand | None = None  # the previous command, while unanswered
 
     def declare_params(self) -> list[ParamSpec]:
         return [int_param(f"{self.param_prefix}_ANS_MS", 15, 1, 19, "ms",
@@ -79,27 +80,39 @@ class ServoDriver(SerialDevice):
             return ServoCommand(self.seq, True, surfaces_to_us(out))
         return ServoCommand(self.seq, False, (0,) * CHANNELS)
 
-    def step(self) -> bool:
+    def step(self) -> int:
         self.seq = (self.seq + 1) & 0xFF
         cmd = self._command()
         if self.ensure_port() is None or not self.write(encode_command(cmd)):
-            return False
+            return 0
         clock = self.ctx.clock
         deadline = time.monotonic() + clock.to_host_s(self.answer_timeout_s)
-        answer: PilotFrame | None = None
-        while answer is None and time.monotonic() < deadline and not self.stop_requested:
+        answered = 0
+        got_current = False
+        while not got_current and time.monotonic() < deadline and not self.stop_requested:
             data = self.read_chunk()
             if not data:
                 continue
             for frame in self.decoder.feed(data, clock.realtime_ns()):
                 if self.item_sink is not None:
                     self.item_sink(frame)
-                if frame.seq == cmd.seq or not self.match_seq:
-                    answer = frame
-        if answer is None:
+                current = frame.seq == cmd.seq or not self.match_seq
+                # An answer to the previous command that came late is still the pilot's real
+                # input: publish and log it rather than lose an exchange.
+                late = frame.seq == ((cmd.seq - 1) & 0xFF) and self._last_cmd is not None
+                if current or late:
+                    sent = cmd if current else self._last_cmd
+                    assert sent is not None
+                    self._publish(frame, sent)
+                    answered += 1
+                    got_current = got_current or current
+        self._last_cmd = cmd if not got_current else None
+        if not got_current:
             self.missed_answers += 1
-            return False
-        t_ns = clock.realtime_ns()
+        return answered
+
+    def _publish(self, answer: PilotFrame, cmd: ServoCommand) -> None:
+        t_ns = self.ctx.clock.realtime_ns()
         self.ctx.state.servo.write(ServoState(
             t_ns, cmd.seq, answer.channels_us, cmd.channels_us, cmd.auto_requested,
             answer.auto_engaged, answer.failsafe, answer.avionics_batt_raw, answer.servo_batt_raw))
@@ -107,7 +120,6 @@ class ServoDriver(SerialDevice):
             self.tlog.log(FMT_EXCHANGE, *answer.channels_us, *cmd.channels_us, cmd.seq,
                           int(cmd.auto_requested), int(answer.auto_engaged), int(answer.failsafe),
                           answer.avionics_batt_raw, answer.servo_batt_raw, t_ns=t_ns)
-        return True
 
     def counters(self) -> dict[str, int]:
         out = super().counters()

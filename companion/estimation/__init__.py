@@ -1,0 +1,44 @@
+"""State estimation numerics: 6-D attitude filter and GPS/INS error-state Kalman filter.
+
+Pure math with no threads or I/O; the estimator thread wraps these. Conventions throughout:
+NED navigation frame, body x forward / y right / z down, quaternions (w, x, y, z) rotating
+body vectors into NED, specific force in m/s^2 (about (0, 0, -g) level and still), rates in
+rad/s. See docs/estimation.md.
+
+Names are imported lazily: the ESKF pulls in scipy and filterpy, which costs about a second
+at start-up that tools using only the attitude filter should not pay.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from companion.estimation.attitude import AttitudeFilter, estimate_attitude
+    from companion.estimation.eskf import Eskf, EskfState, EstimatorFault, UpdateResult
+
+_EXPORTS = {
+    "AttitudeFilter": "companion.estimation.attitude",
+    "estimate_attitude": "companion.estimation.attitude",
+    "Eskf": "companion.estimation.eskf",
+    "EskfState": "companion.estimation.eskf",
+    "EstimatorFault": "companion.estimation.eskf",
+    "UpdateResult": "companion.estimation.eskf",
+}
+
+__all__ = [
+    "AttitudeFilter",
+    "Eskf",
+    "EskfState",
+    "EstimatorFault",
+    "UpdateResult",
+    "estimate_attitude",
+]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'companion.estimation' has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,845 @@
+"""Error-state (multiplicative quaternion) GPS/INS Kalman filter for the on-board estimator.
+
+The 2003 estimator restarted four times in one five-minute flight with numerical trouble. This
+one is built so that cannot take the thread down:
+
+* the nominal state (attitude quaternion, NED velocity and position, gyro and accel biases) is
+  propagated exactly by the IMU; the Kalman filter only tracks a small 15-element error state
+  whose linearisation stays valid, and the quaternion never has to be renormalised by the
+  filter;
+* every update uses the Joseph form, the covariance is symmetrised and checked (finite,
+  positive diagonal, Cholesky), innovations are chi-square gated;
+* anything that goes wrong (a non-finite value, a covariance that is not positive definite,
+  GPS rejected again and again) is an *estimator fault*: it is counted, logged with a reason,
+  and repaired by a reset. No method raises on bad data; bad inputs are rejected and counted.
+
+Error state (15), in this order (see ``IDX_*``): position (m, NED), velocity (m/s, NED),
+attitude error (rad, rotation vector in NED: ``q_true = exp(dtheta) * q``), gyro bias (rad/s),
+accelerometer bias (m/s^2). With the attitude error in the navigation frame the gyro and
+accelerometer noises enter isotropically, so the process noise does not depend on attitude
+and is computed once per sample period.
+
+Why not filterpy's ``KalmanFilter``: its state is additive (``x + K y``) and its transition
+acts on the state itself, while here the transition acts on an error state and the correction
+is injected multiplicatively into a quaternion, then the error is reset to zero. filterpy
+provides the position/velocity process noise block (``Q_continuous_white_noise``) and the
+chi-square and NEES helpers used in the tests.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.common import Q_continuous_white_noise
+from numpy.typing import ArrayLike
+from scipy.stats import chi2
+
+from companion.estimation.quat import (
+    GRAVITY_M_S2,
+    FloatArray,
+    quat_from_rotvec_f,
+    quat_multiply_f,
+    quat_to_euler,
+    roll_pitch_from_accel,
+    rotmat_f,
+    wrap_pi,
+)
+
+log = logging.getLogger(__name__)
+
+N_STATES = 15
+IDX_POS = slice(0, 3)
+IDX_VEL = slice(3, 6)
+IDX_ATT = slice(6, 9)
+IDX_GYRO_BIAS = slice(9, 12)
+IDX_ACCEL_BIAS = slice(12, 15)
+IDX_YAW = 8
+"""Heading error: the NED-down component of the attitude error."""
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """Outcome of one measurement update; the filter never raises on a bad measurement."""
+
+    accepted: bool
+    reason: str
+    """``ok``, ``yaw_aligned``, ``gated``, ``bad_input``, ``not_initialised``,
+    ``latency_out_of_range``, ``attitude_out_of_range`` or ``reset`` (a fault reset ran)."""
+    innovation: FloatArray = field(default_factory=lambda: np.zeros(0))
+    nis: float = math.nan
+    """Normalised innovation squared, ``y' S^-1 y``; chi-square with ``len(innovation)`` dof."""
+    gate: float = math.nan
+    """The chi-square threshold the NIS was compared with."""
+
+
+@dataclass(frozen=True)
+class EstimatorFault:
+    time_s: float
+    reason: str
+
+
+@dataclass(frozen=True)
+class EskfState:
+    """A snapshot for the control thread, the logger and the ground station."""
+
+    time_s: float
+    initialised: bool
+    yaw_aligned: bool
+    quaternion: FloatArray
+    """(w, x, y, z), body to NED."""
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    pos_ned_m: FloatArray
+    vel_ned_m_s: FloatArray
+    gyro_bias_rad_s: FloatArray
+    accel_bias_m_s2: FloatArray
+    cov_diag: FloatArray
+    """Error-state variances in ``IDX_*`` order; the heading variance reads ``pi^2/3`` (a
+    uniform heading) until the heading has been aligned."""
+    last_gps_innovation: FloatArray
+    last_gps_nis: float
+    last_attitude_innovation: FloatArray
+    last_attitude_nis: float
+    faults: int
+    last_fault_reason: str
+    gps_rejections_in_row: int
+    rejected_inputs: int
+
+
+class Eskf:
+    """GPS/INS error-state Kalman filter; see the module docstring for the model.
+
+    Every tuning value is a keyword argument with its unit in its name. Noise densities are
+    continuous-time (per sqrt(Hz)); random walks per sqrt(s).
+
+    Args:
+        gyro_noise_rad_s_rt_hz: gyro white noise (angle random walk), rad/s/sqrt(Hz).
+        accel_noise_m_s2_rt_hz: accelerometer white noise (velocity random walk), m/s^2/sqrt(Hz).
+        gyro_bias_rw_rad_s_rt_s: gyro bias random walk, rad/s/sqrt(s).
+        accel_bias_rw_m_s2_rt_s: accelerometer bias random walk, m/s^2/sqrt(s).
+        init_tilt_std_rad: 1-sigma roll/pitch error after levelling on the mean accel.
+        init_yaw_std_rad: 1-sigma heading error when ``initialise`` is given a heading.
+        init_pos_std_m, init_vel_std_m_s: 1-sigma of the initial position and velocity.
+        init_gyro_bias_std_rad_s: 1-sigma of the gyro bias after the at-rest mean.
+        init_accel_bias_std_m_s2: 1-sigma of the initial accelerometer bias.
+        max_gyro_bias_rad_s, max_accel_bias_m_s2: bias estimates are clipped to these.
+        gps_gate_prob: chi-square probability of the GPS innovation gate (6 dof).
+        max_gps_rejections: consecutive gated fixes that declare a divergence.
+        attitude_gate_prob: chi-square probability of the horizon (roll/pitch) gate.
+        max_attitude_rejections: consecutive gated horizon fixes that reset the attitude
+            covariance (the horizon detector can be wrong for a while; GPS outranks it).
+        horizon_std_rad: 1-sigma of a horizon roll/pitch fix of quality 1.
+        yaw_align_min_speed_m_s: ground speed above which the GPS course aligns the heading.
+        yaw_align_std_rad: 1-sigma heading error right after course alignment (sideslip and
+            wind crab).
+        history_s: how far back state history is kept to place late measurements.
+        max_dt_s: longer prediction gaps are not integrated (the IMU data is missing); the
+            covariance is grown for the gap instead and the gap counted.
+        max_gyro_rad_s, max_accel_m_s2: readings beyond these are rejected as garbage.
+        pd_check_every: full (Cholesky) positive-definiteness check every N predictions;
+            every update is checked too.
+        gravity_m_s2: local gravity.
+    """
+
+    def __init__(
+        self,
+        *,
+        gyro_noise_rad_s_rt_hz: float = 0.003,
+        accel_noise_m_s2_rt_hz: float = 0.05,
+        gyro_bias_rw_rad_s_rt_s: float = 5e-5,
+        accel_bias_rw_m_s2_rt_s: float = 1e-3,
+        init_tilt_std_rad: float = 0.05,
+        init_yaw_std_rad: float = 0.2,
+        init_pos_std_m: float = 5.0,
+        init_vel_std_m_s: float = 1.0,
+        init_gyro_bias_std_rad_s: float = 0.01,
+        init_accel_bias_std_m_s2: float = 0.2,
+        max_gyro_bias_rad_s: float = 0.2,
+        max_accel_bias_m_s2: float = 2.0,
+        gps_gate_prob: float = 0.9999,
+        max_gps_rejections: int = 10,
+        attitude_gate_prob: float = 0.999,
+        max_attitude_rejections: int = 50,
+        horizon_std_rad: float = 0.05,
+        yaw_align_min_speed_m_s: float = 5.0,
+        yaw_align_std_rad: float = 0.3,
+        history_s: float = 1.0,
+        max_dt_s: float = 0.1,
+        max_gyro_rad_s: float = 35.0,
+        max_accel_m_s2: float = 200.0,
+        pd_check_every: int = 100,
+        gravity_m_s2: float = GRAVITY_M_S2,
+    ) -> None:
+        settings = dict(locals())
+        settings.pop("self")
+        for name, value in settings.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"Eskf: {name} must be a finite number > 0, got {value!r}")
+        for name in ("gps_gate_prob", "attitude_gate_prob"):
+            if not settings[name] < 1.0:
+                raise ValueError(f"Eskf: {name} must be < 1, got {settings[name]!r}")
+        self.gyro_noise_rad_s_rt_hz = float(gyro_noise_rad_s_rt_hz)
+        self.accel_noise_m_s2_rt_hz = float(accel_noise_m_s2_rt_hz)
+        self.gyro_bias_rw_rad_s_rt_s = float(gyro_bias_rw_rad_s_rt_s)
+        self.accel_bias_rw_m_s2_rt_s = float(accel_bias_rw_m_s2_rt_s)
+        self.init_tilt_std_rad = float(init_tilt_std_rad)
+        self.init_yaw_std_rad = float(init_yaw_std_rad)
+        self.init_pos_std_m = float(init_pos_std_m)
+        self.init_vel_std_m_s = float(init_vel_std_m_s)
+        self.init_gyro_bias_std_rad_s = float(init_gyro_bias_std_rad_s)
+        self.init_accel_bias_std_m_s2 = float(init_accel_bias_std_m_s2)
+        self.max_gyro_bias_rad_s = float(max_gyro_bias_rad_s)
+        self.max_accel_bias_m_s2 = float(max_accel_bias_m_s2)
+        self.gps_gate = float(chi2.ppf(gps_gate_prob, 6))
+        self.max_gps_rejections = int(max_gps_rejections)
+        self.attitude_gate = float(chi2.ppf(attitude_gate_prob, 2))
+        self.max_attitude_rejections = int(max_attitude_rejections)
+        self.horizon_std_rad = float(horizon_std_rad)
+        self.yaw_align_min_speed_m_s = float(yaw_align_min_speed_m_s)
+        self.yaw_align_std_rad = float(yaw_align_std_rad)
+        self.history_s = float(history_s)
+        self.max_dt_s = float(max_dt_s)
+        self.max_gyro_rad_s = float(max_gyro_rad_s)
+        self.max_accel_m_s2 = float(max_accel_m_s2)
+        self.pd_check_every = int(pd_check_every)
+        self.gravity_m_s2 = float(gravity_m_s2)
+
+        self._q_cache: dict[float, FloatArray] = {}
+        self._f = np.eye(N_STATES)
+        self._eye = np.eye(N_STATES)
+        self._fault_log: deque[EstimatorFault] = deque(maxlen=32)
+        self.faults = 0
+        """Estimator faults so far (each one was repaired by a reset)."""
+        self.last_fault_reason = ""
+        self.rejected_inputs = 0
+        """IMU samples and measurements refused as garbage (not faults: the state was safe)."""
+        self._clear()
+
+    # -- set-up --------------------------------------------------------------------------------
+
+    def _clear(self) -> None:
+        self._initialised = False
+        self._yaw_aligned = False
+        self._t = 0.0
+        self._q = (1.0, 0.0, 0.0, 0.0)
+        self._pos = np.zeros(3)
+        self._vel = np.zeros(3)
+        self._bg = np.zeros(3)
+        self._ba = np.zeros(3)
+        self._p = np.eye(N_STATES)
+        self._f_nav = np.array((0.0, 0.0, -self.gravity_m_s2))
+        self._rot = np.eye(3)
+        self._history: deque[tuple[float, FloatArray, FloatArray, tuple[float, ...]]] = deque(
+            maxlen=max(8, int(self.history_s * 1000))
+        )
+        self._predicts = 0
+        self._gps_rejections = 0
+        self._att_rejections = 0
+        self._last_gps_innovation = np.zeros(6)
+        self._last_gps_nis = math.nan
+        self._last_att_innovation = np.zeros(2)
+        self._last_att_nis = math.nan
+        self._accel_lp = np.array((0.0, 0.0, -self.gravity_m_s2))
+        self._last_imu = (0.0, 0.0, 0.0, 0.0, 0.0, -self.gravity_m_s2)
+        self._last_good: tuple[tuple[float, ...], FloatArray, FloatArray] | None = None
+        self._last_gps: tuple[float, FloatArray, FloatArray] | None = None
+
+    def _initial_covariance(self) -> FloatArray:
+        var = np.empty(N_STATES)
+        var[IDX_POS] = self.init_pos_std_m**2
+        var[IDX_VEL] = self.init_vel_std_m_s**2
+        var[IDX_ATT] = self.init_tilt_std_rad**2
+        var[IDX_YAW] = self.init_yaw_std_rad**2 if self._yaw_aligned else 0.0
+        var[IDX_GYRO_BIAS] = self.init_gyro_bias_std_rad_s**2
+        var[IDX_ACCEL_BIAS] = self.init_accel_bias_std_m_s2**2
+        return np.diag(var)
+
+    def initialise(
+        self,
+        accel_mean: ArrayLike,
+        gyro_mean: ArrayLike,
+        pos_ned: ArrayLike,
+        vel_ned: ArrayLike,
+        yaw_rad: float | None = None,
+    ) -> bool:
+        """Start (or restart) the filter from means taken at rest; False on unusable input.
+
+        ``accel_mean`` levels the attitude, ``gyro_mean`` is taken as the gyro bias (the thesis'
+        initial bias phase), ``pos_ned``/``vel_ned`` start the navigation state. Without
+        ``yaw_rad`` the heading comes from the GPS course as soon as the ground speed exceeds
+        ``yaw_align_min_speed_m_s`` (now, if ``vel_ned`` already does); until then it is not
+        estimated.
+        """
+        try:
+            accel = _vec3(accel_mean)
+            gyro = _vec3(gyro_mean)
+            pos = _vec3(pos_ned)
+            vel = _vec3(vel_ned)
+        except ValueError as exc:
+            log.warning("eskf initialise refused: %s", exc)
+            self.rejected_inputs += 1
+            return False
+        if yaw_rad is not None and not math.isfinite(yaw_rad):
+            log.warning("eskf initialise refused: yaw_rad is %r", yaw_rad)
+            self.rejected_inputs += 1
+            return False
+        if not 0.5 * self.gravity_m_s2 < float(np.linalg.norm(accel)) < 1.5 * self.gravity_m_s2:
+            log.warning("eskf initialise refused: |accel_mean| %.2f m/s^2 is not ~g", np.linalg.norm(accel))
+            self.rejected_inputs += 1
+            return False
+        self._clear()
+        roll, pitch = roll_pitch_from_accel(accel)
+        course = math.atan2(vel[1], vel[0])
+        speed = math.hypot(vel[0], vel[1])
+        if yaw_rad is not None:
+            yaw, self._yaw_aligned = float(yaw_rad), True
+        elif speed >= self.yaw_align_min_speed_m_s:
+            yaw, self._yaw_aligned = course, True
+        else:
+            yaw, self._yaw_aligned = 0.0, False
+        self._q = _quat_from_euler_f(roll, pitch, yaw)
+        self._rot = rotmat_f(*self._q)
+        self._pos = pos
+        self._vel = vel
+        self._bg = np.clip(gyro, -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s)
+        self._ba = np.zeros(3)
+        self._accel_lp = accel
+        g0, g1, g2 = (float(c) for c in gyro)
+        a0, a1, a2 = (float(c) for c in accel)
+        self._last_imu = (g0, g1, g2, a0, a1, a2)
+        self._p = self._initial_covariance()
+        if self._yaw_aligned and yaw_rad is None:
+            self._p[IDX_YAW, IDX_YAW] = self.yaw_align_std_rad**2
+        self._initialised = True
+        self._remember_good()
+        return True
+
+    # -- prediction ----------------------------------------------------------------------------
+
+    def _process_noise(self, dt_s: float) -> FloatArray:
+        key = round(dt_s, 5)
+        q = self._q_cache.get(key)
+        if q is None:
+            q = np.zeros((N_STATES, N_STATES))
+            # position/velocity driven by white accelerometer noise, exact discretisation
+            q[0:6, 0:6] = Q_continuous_white_noise(
+                dim=2, dt=key, spectral_density=self.accel_noise_m_s2_rt_hz**2,
+                block_size=3, order_by_dim=False,
+            )
+            for i in range(6, 9):
+                q[i, i] = self.gyro_noise_rad_s_rt_hz**2 * key
+            for i in range(9, 12):
+                q[i, i] = self.gyro_bias_rw_rad_s_rt_s**2 * key
+            for i in range(12, 15):
+                q[i, i] = self.accel_bias_rw_m_s2_rt_s**2 * key
+            if len(self._q_cache) > 64:
+                self._q_cache.clear()
+            self._q_cache[key] = q
+        return q
+
+    def predict(self, gyro_rad_s: ArrayLike, accel_m_s2: ArrayLike, dt_s: float) -> bool:
+        """Propagate with one IMU sample (mean rate and specific force over ``dt_s``).
+
+        Returns False when the sample was refused or a fault was repaired. A garbage sample is
+        replaced by the previous good one (zero-order hold); a gap longer than ``max_dt_s``
+        coasts on the velocity; before ``initialise`` only time advances. Time always advances
+        so late measurements stay aligned.
+        """
+        try:
+            g0, g1, g2 = (float(c) for c in np.asarray(gyro_rad_s, dtype=float).reshape(3))
+            a0, a1, a2 = (float(c) for c in np.asarray(accel_m_s2, dtype=float).reshape(3))
+            dt = float(dt_s)
+        except (TypeError, ValueError):
+            self.rejected_inputs += 1
+            return False
+        if not (math.isfinite(dt) and dt > 0.0):
+            self.rejected_inputs += 1
+            return False
+        if not self._initialised:
+            self._t += dt
+            return False
+        if dt > self.max_dt_s:
+            # IMU data missing for a while: coast on the velocity and let the uncertainty grow
+            self.rejected_inputs += 1
+            self._coast(dt)
+            return False
+        finite = all(math.isfinite(c) for c in (g0, g1, g2, a0, a1, a2))
+        if (
+            not finite
+            or g0 * g0 + g1 * g1 + g2 * g2 > self.max_gyro_rad_s**2
+            or a0 * a0 + a1 * a1 + a2 * a2 > self.max_accel_m_s2**2
+        ):
+            # one garbage sample: hold the previous good one (zero-order hold)
+            self.rejected_inputs += 1
+            held = True
+            g0, g1, g2, a0, a1, a2 = self._last_imu
+        else:
+            held = False
+            self._last_imu = (g0, g1, g2, a0, a1, a2)
+
+        bg, ba = self._bg, self._ba
+        wx, wy, wz = (g0 - bg[0]) * dt, (g1 - bg[1]) * dt, (g2 - bg[2]) * dt
+        f_body = np.array((a0 - ba[0], a1 - ba[1], a2 - ba[2]))
+        rot0 = self._rot
+        # attitude: exact exponential map; velocity uses the mid-period attitude
+        q_mid = quat_multiply_f(*self._q, *quat_from_rotvec_f(0.5 * wx, 0.5 * wy, 0.5 * wz))
+        q_new = quat_multiply_f(*self._q, *quat_from_rotvec_f(wx, wy, wz))
+        f_nav = rotmat_f(*q_mid) @ f_body
+        acc = f_nav.copy()
+        acc[2] += self.gravity_m_s2
+        self._pos += self._vel * dt + 0.5 * dt * dt * acc
+        self._vel += acc * dt
+        n = math.sqrt(sum(c * c for c in q_new))
+        self._q = (q_new[0] / n, q_new[1] / n, q_new[2] / n, q_new[3] / n)
+        self._rot = rotmat_f(*self._q)
+        self._f_nav = f_nav
+        self._t += dt
+        self._accel_lp += 0.02 * (np.array((a0, a1, a2)) - self._accel_lp)
+
+        f = self._f
+        f[0, 3] = f[1, 4] = f[2, 5] = dt
+        fx, fy, fz = float(f_nav[0]) * dt, float(f_nav[1]) * dt, float(f_nav[2]) * dt
+        # d(dv)/d(dtheta) = -[R f]x
+        f[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
+        f[3:6, 12:15] = rot0 * -dt
+        f[6:9, 9:12] = rot0 * -dt
+        p = f @ self._p @ f.T
+        p += self._process_noise(dt)
+        self._p = p
+        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q))
+        self._predicts += 1
+        healthy = self._after_step(check_pd=self._predicts % self.pd_check_every == 0)
+        return healthy and not held
+
+    def _coast(self, dt_s: float) -> None:
+        """Cover a gap in the IMU data: constant velocity, covariance grown for the gap."""
+        self._pos += self._vel * dt_s
+        self._t += dt_s
+        steps = max(1, math.ceil(dt_s / self.max_dt_s))
+        step = dt_s / steps
+        f = self._eye.copy()
+        f[0, 3] = f[1, 4] = f[2, 5] = step
+        q = self._process_noise(step).copy()
+        # unknown manoeuvres during the gap, about 1 m/s^2 1-sigma on each axis
+        q[0:6, 0:6] += Q_continuous_white_noise(
+            dim=2, dt=step, spectral_density=1.0, block_size=3, order_by_dim=False
+        )
+        p = self._p
+        for _ in range(min(steps, 1000)):
+            p = f @ p @ f.T + q
+        self._p = p
+        self._history.clear()
+        self._after_step(check_pd=True)
+
+    # -- measurement updates -------------------------------------------------------------------
+
+    def update_gps(
+        self,
+        pos_ned_m: ArrayLike,
+        vel_ned_m_s: ArrayLike,
+        pos_std_m: float | Sequence[float] | FloatArray,
+        vel_std_m_s: float | Sequence[float] | FloatArray,
+        latency_s: float = 0.0,
+    ) -> UpdateResult:
+        """Fuse a GPS fix valid ``latency_s`` before the latest IMU sample.
+
+        The fix is compared with the stored nominal state at its validity time (interpolated
+        from the last ``history_s`` of predictions); the resulting error is mapped to now
+        through the first-order transition over the latency (position error drifts with the
+        velocity error, velocity error with the attitude and accel-bias errors), and the
+        correction is applied to the current state. A fix older than the history is refused.
+        """
+        if not self._initialised:
+            return UpdateResult(False, "not_initialised")
+        try:
+            z_pos = _vec3(pos_ned_m)
+            z_vel = _vec3(vel_ned_m_s)
+            p_std = _std3(pos_std_m)
+            v_std = _std3(vel_std_m_s)
+            latency = float(latency_s)
+            if not (math.isfinite(latency) and latency >= 0.0):
+                raise ValueError(f"latency_s is {latency_s!r}")
+        except (TypeError, ValueError) as exc:
+            self.rejected_inputs += 1
+            log.debug("GPS fix refused: %s", exc)
+            return UpdateResult(False, "bad_input")
+        past = self._state_at(self._t - latency)
+        if past is None:
+            return UpdateResult(False, "latency_out_of_range")
+        pos_then, vel_then, _ = past
+        self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
+
+        speed = math.hypot(z_vel[0], z_vel[1])
+        if not self._yaw_aligned and speed >= self.yaw_align_min_speed_m_s:
+            self._align_yaw(math.atan2(z_vel[1], z_vel[0]), z_pos, z_vel, latency, p_std, v_std)
+            return UpdateResult(True, "yaw_aligned")
+
+        y = np.concatenate((z_pos - pos_then, z_vel - vel_then))
+        h = np.zeros((6, N_STATES))
+        h[0:3, 0:3] = np.eye(3)
+        h[0:3, 3:6] = np.eye(3) * -latency
+        h[3:6, 3:6] = np.eye(3)
+        if latency > 0.0:
+            fx, fy, fz = (float(c) * latency for c in self._f_nav)
+            h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
+            h[3:6, 12:15] = self._rot * latency
+        r = np.diag(np.concatenate((p_std**2, v_std**2)))
+        result = self._kalman_update(y, h, r, self.gps_gate)
+        self._last_gps_innovation = y
+        self._last_gps_nis = result.nis
+        if result.accepted:
+            self._gps_rejections = 0
+            self._remember_good()
+            return result
+        self._gps_rejections += 1
+        if self._gps_rejections >= self.max_gps_rejections:
+            self._fault(
+                f"GPS rejected {self._gps_rejections} times in a row (NIS {result.nis:.1f} > "
+                f"{result.gate:.1f})",
+                gps=(z_pos + z_vel * latency, z_vel),
+            )
+            return UpdateResult(False, "reset", y, result.nis, result.gate)
+        return result
+
+    def update_attitude(
+        self, roll_rad: float, pitch_rad: float, quality: float, latency_s: float = 0.0
+    ) -> UpdateResult:
+        """Fuse a roll/pitch fix (horizon detection); ``quality`` in (0, 1] scales its trust.
+
+        The measurement variance is ``(horizon_std_rad / quality)^2``. Fixes near vertical
+        pitch (where roll is undefined) are refused.
+        """
+        if not self._initialised:
+            return UpdateResult(False, "not_initialised")
+        try:
+            roll, pitch, qual, latency = (
+                float(roll_rad), float(pitch_rad), float(quality), float(latency_s)
+            )
+        except (TypeError, ValueError):
+            self.rejected_inputs += 1
+            return UpdateResult(False, "bad_input")
+        if not (
+            all(math.isfinite(c) for c in (roll, pitch, qual, latency))
+            and 0.0 < qual <= 1.0
+            and latency >= 0.0
+            and abs(pitch) <= math.pi / 2
+        ):
+            self.rejected_inputs += 1
+            return UpdateResult(False, "bad_input")
+        past = self._state_at(self._t - latency)
+        if past is None:
+            return UpdateResult(False, "latency_out_of_range")
+        q_then = past[2]
+        est_roll, est_pitch, est_yaw = (float(c) for c in quat_to_euler(np.array(q_then)))
+        if abs(est_pitch) > math.radians(75.0) or abs(pitch) > math.radians(75.0):
+            return UpdateResult(False, "attitude_out_of_range")
+        y = np.array((float(wrap_pi(roll - est_roll)), pitch - est_pitch))
+        cy, sy = math.cos(est_yaw), math.sin(est_yaw)
+        cp = math.cos(est_pitch)
+        h = np.zeros((2, N_STATES))
+        # Euler-angle errors from the NED rotation-vector error (first two rows of M^-1)
+        h[0, 6:9] = (cy / cp, sy / cp, 0.0)
+        h[1, 6:9] = (-sy, cy, 0.0)
+        if latency > 0.0:
+            # the attitude error then differs from now's by the gyro-bias drift in between
+            h[:, 9:12] = h[:, 6:9] @ self._rot * latency
+        var = (self.horizon_std_rad / qual) ** 2
+        result = self._kalman_update(y, h, np.eye(2) * var, self.attitude_gate)
+        self._last_att_innovation = y
+        self._last_att_nis = result.nis
+        if result.accepted:
+            self._att_rejections = 0
+            return result
+        self._att_rejections += 1
+        if self._att_rejections >= self.max_attitude_rejections:
+            self._att_rejections = 0
+            self._record_fault(
+                f"horizon fixes rejected {self.max_attitude_rejections} times in a row"
+            )
+            # reopen the attitude uncertainty so the next fixes (and GPS) can pull it back
+            self._inflate(IDX_ATT, self.init_tilt_std_rad**2)
+            return UpdateResult(False, "reset", y, result.nis, result.gate)
+        return result
+
+    def _kalman_update(
+        self, y: FloatArray, h: FloatArray, r: FloatArray, gate: float
+    ) -> UpdateResult:
+        p = self._p
+        if not self._is_pd(p):
+            self._fault("covariance not positive definite before an update")
+            return UpdateResult(False, "reset", y)
+        if not self._yaw_aligned:
+            h = h.copy()
+            h[:, IDX_YAW] = 0.0
+        pht = p @ h.T
+        s = h @ pht + r
+        try:
+            s_inv = np.linalg.inv(np.linalg.cholesky(s))
+            s_inv = s_inv.T @ s_inv
+        except np.linalg.LinAlgError:
+            self._fault("innovation covariance not positive definite")
+            return UpdateResult(False, "reset", y)
+        nis = float(y @ s_inv @ y)
+        if not math.isfinite(nis):
+            self._fault("non-finite innovation")
+            return UpdateResult(False, "reset", y)
+        if nis > gate:
+            return UpdateResult(False, "gated", y, nis, gate)
+        k = pht @ s_inv
+        if not self._yaw_aligned:
+            k[IDX_YAW, :] = 0.0
+        dx = k @ y
+        ikh = self._eye - k @ h
+        self._p = ikh @ p @ ikh.T + k @ r @ k.T
+        self._inject(dx)
+        if self._after_step(check_pd=True):
+            return UpdateResult(True, "ok", y, nis, gate)
+        return UpdateResult(False, "reset", y, nis, gate)
+
+    def _inject(self, dx: FloatArray) -> None:
+        """Fold the error estimate into the nominal state and reset the error to zero."""
+        self._pos += dx[IDX_POS]
+        self._vel += dx[IDX_VEL]
+        tx, ty, tz = (float(c) for c in dx[IDX_ATT])
+        w, x, y, z = quat_multiply_f(*quat_from_rotvec_f(tx, ty, tz), *self._q)
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        self._q = (w / n, x / n, y / n, z / n)
+        self._rot = rotmat_f(*self._q)
+        self._bg = np.clip(self._bg + dx[IDX_GYRO_BIAS], -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s)
+        self._ba = np.clip(self._ba + dx[IDX_ACCEL_BIAS], -self.max_accel_bias_m_s2, self.max_accel_bias_m_s2)
+        # error-reset Jacobian for a NED-frame attitude error: G = I + [dtheta/2]x
+        if tx * tx + ty * ty + tz * tz > 1e-12:
+            g = np.eye(3) + 0.5 * np.array(((0.0, -tz, ty), (tz, 0.0, -tx), (-ty, tx, 0.0)))
+            p = self._p
+            p[IDX_ATT, :] = g @ p[IDX_ATT, :]
+            p[:, IDX_ATT] = p[:, IDX_ATT] @ g.T
+
+    # -- heading alignment ---------------------------------------------------------------------
+
+    def _align_yaw(
+        self,
+        course_rad: float,
+        z_pos: FloatArray,
+        z_vel: FloatArray,
+        latency_s: float,
+        p_std: FloatArray,
+        v_std: FloatArray,
+    ) -> None:
+        """Turn the attitude about NED-down so the heading equals the GPS course."""
+        roll, pitch, yaw = (float(c) for c in quat_to_euler(np.array(self._q)))
+        delta = float(wrap_pi(course_rad - yaw))
+        dq = quat_from_rotvec_f(0.0, 0.0, delta)
+        self._q = quat_multiply_f(*dq, *self._q)
+        self._rot = rotmat_f(*self._q)
+        # velocity and position integrated with the wrong heading are worthless: restart them
+        self._vel = z_vel.copy()
+        self._pos = z_pos + z_vel * latency_s
+        self._history.clear()
+        self._yaw_aligned = True
+        p = self._p
+        for idx in (IDX_POS, IDX_VEL):
+            p[idx, :] = 0.0
+            p[:, idx] = 0.0
+        p[IDX_YAW, :] = 0.0
+        p[:, IDX_YAW] = 0.0
+        p[IDX_POS, IDX_POS] = np.diag(p_std**2 + (v_std * latency_s) ** 2)
+        p[IDX_VEL, IDX_VEL] = np.diag(v_std**2)
+        p[IDX_YAW, IDX_YAW] = self.yaw_align_std_rad**2
+        log.info("heading aligned to GPS course %.1f deg", math.degrees(course_rad))
+        self._after_step(check_pd=True)
+
+    # -- health --------------------------------------------------------------------------------
+
+    def _after_step(self, check_pd: bool) -> bool:
+        """Keep P symmetric and unaligned heading out of it; detect divergence. True if healthy."""
+        p = self._p
+        p = 0.5 * (p + p.T)
+        if not self._yaw_aligned:
+            p[IDX_YAW, :] = 0.0
+            p[:, IDX_YAW] = 0.0
+        self._p = p
+        diag = np.diagonal(p)
+        state_ok = (
+            all(math.isfinite(c) for c in self._q)
+            and np.isfinite(self._pos).all()
+            and np.isfinite(self._vel).all()
+            and np.isfinite(self._bg).all()
+            and np.isfinite(self._ba).all()
+        )
+        if not state_ok:
+            self._fault("non-finite state")
+            return False
+        if not (np.isfinite(diag).all() and (diag >= 0.0).all()):
+            self._fault("covariance not finite or negative variance")
+            return False
+        if check_pd and not self._is_pd(p):
+            self._fault("covariance not positive definite")
+            return False
+        return True
+
+    def _is_pd(self, p: FloatArray) -> bool:
+        """Cholesky test over the states in use (an unaligned heading has variance 0)."""
+        if self._yaw_aligned:
+            sub = p
+        else:
+            keep = [i for i in range(N_STATES) if i != IDX_YAW]
+            sub = p[np.ix_(keep, keep)]
+        try:
+            np.linalg.cholesky(sub)
+        except np.linalg.LinAlgError:
+            return False
+        return True
+
+    def _record_fault(self, reason: str) -> None:
+        self.faults += 1
+        self.last_fault_reason = reason
+        self._fault_log.append(EstimatorFault(self._t, reason))
+        log.warning("estimator fault %d at t=%.2f s: %s", self.faults, self._t, reason)
+
+    def _fault(self, reason: str, gps: tuple[FloatArray, FloatArray] | None = None) -> None:
+        """Count and log a divergence, then reset to the best state still believable."""
+        self._record_fault(reason)
+        good = self._last_good
+        q: tuple[float, ...] = self._q
+        if not all(math.isfinite(c) for c in q):
+            if good is not None:
+                q = good[0]
+            else:
+                # nothing believable left: level on the low-passed accelerometer (wrong in a
+                # sustained turn, which is why a finite attitude is always preferred)
+                if not np.isfinite(self._accel_lp).all():
+                    self._accel_lp = np.array((0.0, 0.0, -self.gravity_m_s2))
+                roll, pitch = roll_pitch_from_accel(self._accel_lp)
+                q = _quat_from_euler_f(roll, pitch, 0.0)
+        pos, vel = self._pos, self._vel
+        if gps is None and self._last_gps is not None:
+            # a recent fix, carried forward to now, beats a state that just diverged
+            t_fix, fix_pos, fix_vel = self._last_gps
+            age = self._t - t_fix
+            if age < 2.0:
+                gps = (fix_pos + fix_vel * age, fix_vel)
+        if gps is not None:
+            pos, vel = gps[0].copy(), gps[1].copy()
+        if not (np.isfinite(pos).all() and np.isfinite(vel).all()):
+            pos, vel = (good[1].copy(), good[2].copy()) if good is not None else (np.zeros(3), np.zeros(3))
+        if not np.isfinite(self._bg).all():
+            self._bg = np.zeros(3)
+        if not np.isfinite(self._ba).all():
+            self._ba = np.zeros(3)
+        self._q = (q[0], q[1], q[2], q[3])
+        self._rot = rotmat_f(*self._q)
+        self._pos, self._vel = pos, vel
+        self._p = self._initial_covariance()
+        self._history.clear()
+        self._gps_rejections = 0
+        self._att_rejections = 0
+
+    def _inflate(self, idx: slice, var: float) -> None:
+        p = self._p
+        p[idx, :] = 0.0
+        p[:, idx] = 0.0
+        for i in range(idx.start, idx.stop):
+            if i != IDX_YAW or self._yaw_aligned:
+                p[i, i] = var
+
+    def _remember_good(self) -> None:
+        self._last_good = (self._q, self._pos.copy(), self._vel.copy())
+
+    def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
+        """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
+        if t_s >= self._t - 1e-9 or not self._history:
+            return self._pos.copy(), self._vel.copy(), self._q
+        newer = None
+        for entry in reversed(self._history):
+            if entry[0] <= t_s:
+                if newer is None:
+                    return entry[1].copy(), entry[2].copy(), entry[3]
+                t0, t1 = entry[0], newer[0]
+                a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
+                pos = entry[1] + a * (newer[1] - entry[1])
+                vel = entry[2] + a * (newer[2] - entry[2])
+                return pos, vel, (newer[3] if a >= 0.5 else entry[3])
+            newer = entry
+        return None
+
+    # -- outputs -------------------------------------------------------------------------------
+
+    @property
+    def initialised(self) -> bool:
+        return self._initialised
+
+    @property
+    def fault_log(self) -> list[EstimatorFault]:
+        """The most recent faults (up to 32), oldest first."""
+        return list(self._fault_log)
+
+    def state(self) -> EskfState:
+        q = np.array(self._q)
+        roll, pitch, yaw = (float(c) for c in quat_to_euler(q))
+        diag = np.diagonal(self._p).copy()
+        if not self._yaw_aligned:
+            diag[IDX_YAW] = math.pi**2 / 3.0
+        return EskfState(
+            time_s=self._t,
+            initialised=self._initialised,
+            yaw_aligned=self._yaw_aligned,
+            quaternion=q,
+            roll_rad=roll,
+            pitch_rad=pitch,
+            yaw_rad=yaw,
+            pos_ned_m=self._pos.copy(),
+            vel_ned_m_s=self._vel.copy(),
+            gyro_bias_rad_s=self._bg.copy(),
+            accel_bias_m_s2=self._ba.copy(),
+            cov_diag=diag,
+            last_gps_innovation=self._last_gps_innovation.copy(),
+            last_gps_nis=self._last_gps_nis,
+            last_attitude_innovation=self._last_att_innovation.copy(),
+            last_attitude_nis=self._last_att_nis,
+            faults=self.faults,
+            last_fault_reason=self.last_fault_reason,
+            gps_rejections_in_row=self._gps_rejections,
+            rejected_inputs=self.rejected_inputs,
+        )
+
+    @property
+    def covariance(self) -> FloatArray:
+        """The full 15x15 error-state covariance (a copy)."""
+        return self._p.copy()
+
+
+def _vec3(value: ArrayLike) -> FloatArray:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape != (3,):
+        raise ValueError(f"expected 3 values, got {arr.shape[0]}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"non-finite value in {arr.tolist()}")
+    return arr.copy()
+
+
+def _std3(value: float | Sequence[float] | FloatArray) -> FloatArray:
+    """A standard deviation per axis from a scalar or 3 values; must be finite and > 0."""
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape == (1,):
+        arr = np.repeat(arr, 3)
+    if arr.shape != (3,) or not np.isfinite(arr).all() or (arr <= 0.0).any():
+        raise ValueError(f"standard deviation must be 1 or 3 finite values > 0, got {value!r}")
+    return np.maximum(arr, 1e-3)
+
+
+def _quat_from_euler_f(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )

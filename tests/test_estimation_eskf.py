@@ -1,0 +1,338 @@
+"""GPS/INS error-state filter on synthetic flights: accuracy, consistency, latency, faults."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from filterpy.stats import NEES
+from scipy.stats import chi2
+
+from companion.estimation.eskf import IDX_ATT, Eskf, EskfState, UpdateResult
+from companion.estimation.quat import (
+    heading_error_rad,
+    quat_conjugate,
+    quat_multiply,
+    quat_to_euler,
+    quat_to_rotvec,
+    wrap_pi,
+)
+from companion.estimation.synthetic import (
+    GpsRecording,
+    ImuErrors,
+    ImuRecording,
+    Segment,
+    Trajectory,
+    add_imu_errors,
+    fixed_wing_flight,
+    gps_fixes,
+)
+
+# The simulated sensor matches the filter's default tuning, so consistency can be checked.
+IMU_ERRORS = ImuErrors(
+    gyro_noise_rad_s_rt_hz=0.003,
+    accel_noise_m_s2_rt_hz=0.05,
+    gyro_bias_rad_s=math.radians(0.5),
+    gyro_bias_rw_rad_s_rt_s=5e-5,
+    accel_bias_m_s2=0.1,
+    accel_bias_rw_m_s2_rt_s=1e-3,
+    seed=3,
+)
+LATENCY_S = 0.15
+
+
+@dataclass
+class Run:
+    t_s: np.ndarray
+    roll_err_deg: np.ndarray
+    pitch_err_deg: np.ndarray
+    yaw_err_deg: np.ndarray
+    pos_err_m: np.ndarray
+    vel_err_m_s: np.ndarray
+    results: list[tuple[float, UpdateResult]]
+    final: EskfState
+    pd_failures: int
+    att_nees: list[float]
+
+
+def run_filter(
+    tr: Trajectory,
+    imu: ImuRecording,
+    gps: GpsRecording,
+    eskf: Eskf | None = None,
+    *,
+    compensate_latency: bool = True,
+    gps_ok: Callable[[float], bool] = lambda t: True,
+    yaw_rad: float | None = None,
+    gps_hook: Callable[[float, np.ndarray], np.ndarray] | None = None,
+) -> Run:
+    """Feed a recording through the filter as the estimator thread would."""
+    f = eskf if eskf is not None else Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0], gps.vel_ned_m_s[0], yaw_rad)
+    dt = 1.0 / tr.rate_hz
+    gi = 1
+    rows = []
+    results: list[tuple[float, UpdateResult]] = []
+    pd_failures = 0
+    att_nees: list[float] = []
+    for k in range(1, len(tr.t_s)):
+        f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], dt)
+        now = tr.t_s[k]
+        while gi < len(gps.t_report_s) and gps.t_report_s[gi] <= now + 1e-9:
+            if gps_ok(now):
+                latency = now - gps.t_valid_s[gi] if compensate_latency else 0.0
+                pos = gps.pos_ned_m[gi] if gps_hook is None else gps_hook(now, gps.pos_ned_m[gi])
+                res = f.update_gps(pos, gps.vel_ned_m_s[gi], gps.pos_std_m, gps.vel_std_m_s, latency)
+                results.append((now, res))
+                p = f.covariance
+                try:
+                    np.linalg.cholesky(p)
+                except np.linalg.LinAlgError:
+                    pd_failures += 1
+                s = f.state()
+                err = quat_to_rotvec(quat_multiply(tr.quat[k], quat_conjugate(s.quaternion)))
+                att_nees.append(float(NEES(np.array([err]), np.zeros((1, 3)), np.array([p[IDX_ATT, IDX_ATT]]))[0]))
+            gi += 1
+        s = f.state()
+        truth = quat_to_euler(tr.quat[k])
+        rows.append(
+            (
+                now,
+                math.degrees(float(wrap_pi(s.roll_rad - truth[0]))),
+                math.degrees(s.pitch_rad - truth[1]),
+                math.degrees(float(heading_error_rad(s.quaternion, tr.quat[k]))),
+                float(np.linalg.norm(s.pos_ned_m - tr.pos_ned_m[k])),
+                float(np.linalg.norm(s.vel_ned_m_s - tr.vel_ned_m_s[k])),
+            )
+        )
+    r = np.array(rows)
+    return Run(r[:, 0], r[:, 1], r[:, 2], r[:, 3], r[:, 4], r[:, 5], results, f.state(), pd_failures, att_nees)
+
+
+def rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x**2)))
+
+
+@pytest.fixture(scope="module")
+def turn_flight() -> tuple[Trajectory, ImuRecording, GpsRecording]:
+    tr = fixed_wing_flight([Segment(20.0), Segment(80.0, bank_deg=30.0), Segment(20.0)])
+    imu = add_imu_errors(tr, IMU_ERRORS)
+    gps = gps_fixes(tr, rate_hz=10.0, latency_s=LATENCY_S, seed=4)
+    return tr, imu, gps
+
+
+@pytest.fixture(scope="module")
+def turn_run(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> Run:
+    return run_filter(*turn_flight)
+
+
+def test_banked_turn_accuracy(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording], turn_run: Run) -> None:
+    tr, imu, _ = turn_flight
+    run = turn_run
+    turning = (run.t_s > 40.0) & (run.t_s < 100.0)
+    assert rms(run.roll_err_deg[turning]) < 0.6
+    assert rms(run.pitch_err_deg[turning]) < 0.6
+    assert rms(run.yaw_err_deg[turning]) < 2.0
+    assert float(np.percentile(run.pos_err_m[run.t_s > 5.0], 99)) < 1.5
+    assert rms(run.vel_err_m_s[run.t_s > 5.0]) < 0.3
+    gyro_bias_err = np.degrees(np.abs(run.final.gyro_bias_rad_s - imu.gyro_bias_rad_s[-1]))
+    assert gyro_bias_err.max() < 0.1  # deg/s; the truth is ~0.5 deg/s per axis
+    assert run.final.faults == 0
+    assert run.final.yaw_aligned
+
+
+def test_covariance_pd_and_innovations_consistent(turn_run: Run) -> None:
+    run = turn_run
+    assert run.pd_failures == 0
+    assert all(res.accepted for _, res in run.results)
+    nis = np.array([res.nis for t, res in run.results if t > 20.0])
+    n = len(nis)
+    low, high = chi2.ppf([0.005, 0.995], 6 * n) / n
+    assert low < nis.mean() < high
+    # and the attitude covariance is honest too (NEES of 3 dof averaged over the turn)
+    nees = np.array(run.att_nees[300:])
+    assert 1.0 < nees.mean() < 6.0
+    assert np.isfinite(run.final.cov_diag).all()
+    assert run.final.last_gps_innovation.shape == (6,)
+    assert math.isfinite(run.final.last_gps_nis)
+
+
+def test_latency_compensation_matters(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording], turn_run: Run) -> None:
+    naive = run_filter(*turn_flight, compensate_latency=False)
+    late = naive.t_s > 30.0
+    # 20 m/s x 0.15 s = 3 m of lag if the fix is taken as current
+    assert float(np.mean(naive.pos_err_m[late])) > 2.0
+    assert float(np.mean(turn_run.pos_err_m[turn_run.t_s > 30.0])) < 0.7
+
+
+def test_gps_outage_grows_error_but_recovers(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording], turn_run: Run) -> None:
+    outage = (60.0, 80.0)
+    run = run_filter(*turn_flight, gps_ok=lambda t: not outage[0] <= t < outage[1])
+    during = (run.t_s >= outage[0]) & (run.t_s < outage[1])
+    before = (run.t_s > 40.0) & (run.t_s < outage[0])
+    after = run.t_s > outage[1] + 10.0
+    assert np.isfinite(run.pos_err_m).all() and np.isfinite(run.roll_err_deg).all()
+    assert run.pos_err_m[during].max() > 3.0 * run.pos_err_m[before].max()
+    assert run.pos_err_m[after].max() < 1.5
+    assert rms(run.roll_err_deg[after]) < 0.6
+    assert run.final.faults == 0
+
+
+def test_garbage_gps_is_detected_and_reset(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+
+    def jump(t: float, pos: np.ndarray) -> np.ndarray:
+        # from t=50 s the receiver reports a position 500 m off
+        return pos + np.array((500.0, 0.0, 0.0)) if t >= 50.0 else pos
+
+    f = Eskf()
+    run = run_filter(tr, imu, gps, f, gps_hook=jump)
+    reasons = [res.reason for t, res in run.results if 50.0 <= t < 52.0]
+    assert reasons[: f.max_gps_rejections - 1] == ["gated"] * (f.max_gps_rejections - 1)
+    assert "reset" in reasons
+    assert run.final.faults == 1
+    assert "GPS rejected" in run.final.last_fault_reason
+    assert f.fault_log[0].time_s == pytest.approx(50.0 + 0.1 * (f.max_gps_rejections - 1), abs=0.15)
+    # after the reset the filter follows the (now consistently offset) receiver, sanely
+    late = run.t_s > 60.0
+    assert np.isfinite(run.pos_err_m).all()
+    assert np.abs(run.pos_err_m[late] - 500.0).max() < 3.0
+    assert all(res.accepted for t, res in run.results if t > 55.0)
+    assert rms(run.roll_err_deg[late]) < 1.0
+
+
+def test_nan_and_garbage_inputs_never_raise(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0], gps.vel_ned_m_s[0])
+    for k in range(1, 500):
+        gyro = imu.gyro_rad_s[k].copy()
+        if k % 50 == 0:
+            gyro[1] = np.nan
+        if k % 70 == 0:
+            gyro[0] = 1e9
+        assert f.predict(gyro, imu.accel_m_s2[k], 0.01) == (k % 50 != 0 and k % 70 != 0)
+    assert f.rejected_inputs == 9 + 7 - 1
+    res = f.update_gps((np.nan, 0.0, 0.0), (20.0, 0.0, 0.0), 1.0, 0.1)
+    assert (res.accepted, res.reason) == (False, "bad_input")
+    assert f.update_gps((0, 0, 0), (20, 0, 0), -1.0, 0.1).reason == "bad_input"
+    assert f.update_gps((0, 0), (20, 0, 0), 1.0, 0.1).reason == "bad_input"
+    assert f.update_gps((0, 0, 0), (20, 0, 0), 1.0, 0.1, latency_s=5.0).reason == "latency_out_of_range"
+    assert f.update_attitude(0.0, 0.0, quality=0.0).reason == "bad_input"
+    assert f.update_attitude(math.nan, 0.0, quality=1.0).reason == "bad_input"
+    assert f.predict((0, 0, 0), (0, 0, -9.8), -0.01) is False
+    s = f.state()
+    assert np.isfinite(s.pos_ned_m).all() and np.isfinite(s.quaternion).all()
+    assert s.faults == 0
+    assert s.rejected_inputs >= 20
+
+
+def test_long_imu_gap_coasts_and_grows_covariance(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0], gps.vel_ned_m_s[0])
+    before = f.state()
+    assert f.predict(imu.gyro_rad_s[1], imu.accel_m_s2[1], 2.0) is False
+    after = f.state()
+    assert after.time_s == pytest.approx(before.time_s + 2.0)
+    assert after.pos_ned_m[0] == pytest.approx(before.pos_ned_m[0] + 2.0 * before.vel_ned_m_s[0])
+    assert (after.cov_diag[0:6] > before.cov_diag[0:6]).all()
+    assert after.faults == 0
+
+
+def test_internal_divergence_is_detected_and_reset(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0], gps.vel_ned_m_s[0])
+    for k in range(1, 200):
+        f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], 0.01)
+    assert f.update_gps(gps.pos_ned_m[20], gps.vel_ned_m_s[20], gps.pos_std_m, gps.vel_std_m_s, 0.0).accepted
+    # a numerical blow-up inside the filter (what the 2003 estimator suffered)
+    f._vel[0] = np.nan  # noqa: SLF001 - fault injection
+    f.predict(imu.gyro_rad_s[200], imu.accel_m_s2[200], 0.01)
+    s = f.state()
+    assert s.faults == 1 and "non-finite" in s.last_fault_reason
+    assert np.isfinite(s.vel_ned_m_s).all() and np.isfinite(s.cov_diag).all()
+    # a covariance that is no longer positive definite
+    f._p[0, 1] = f._p[1, 0] = 10.0 * math.sqrt(f._p[0, 0] * f._p[1, 1])  # noqa: SLF001
+    res = f.update_gps(gps.pos_ned_m[21], gps.vel_ned_m_s[21], gps.pos_std_m, gps.vel_std_m_s, 0.0)
+    assert not res.accepted
+    s = f.state()
+    assert s.faults == 2
+    assert np.linalg.eigvalsh(f.covariance).min() > 0.0
+    # and the filter carries on normally
+    for k in range(201, 400):
+        assert f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], 0.01)
+    assert f.update_gps(gps.pos_ned_m[40], gps.vel_ned_m_s[40], gps.pos_std_m, gps.vel_std_m_s, 0.0).accepted
+    assert len(f.fault_log) == 2
+
+
+def test_heading_from_course_and_observable_in_turns(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+    # stationary start: heading unknown, not estimated
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), np.zeros(3), np.zeros(3), None)
+    assert not f.state().yaw_aligned
+    assert f.state().cov_diag[8] == pytest.approx(math.pi**2 / 3)
+    # first fix while moving aligns the heading to the GPS course
+    res = f.update_gps(gps.pos_ned_m[0], gps.vel_ned_m_s[0], gps.pos_std_m, gps.vel_std_m_s)
+    assert res.reason == "yaw_aligned" and f.state().yaw_aligned
+    assert abs(math.degrees(float(heading_error_rad(f.state().quaternion, tr.quat[0])))) < 3.0
+    # a 25 deg wrong heading given at start is pulled in by GPS velocity during the turn
+    run = run_filter(*turn_flight, yaw_rad=math.radians(25.0))
+    assert abs(run.yaw_err_deg[run.t_s < 1.0]).max() > 20.0
+    assert rms(run.yaw_err_deg[(run.t_s > 60.0) & (run.t_s < 100.0)]) < 2.0
+
+
+def test_horizon_fixes_correct_tilt() -> None:
+    tr = fixed_wing_flight([Segment(30.0)])
+    imu = add_imu_errors(tr, IMU_ERRORS)
+    f = Eskf()
+    tilted = imu.accel_m_s2[0] + np.array((0.0, 1.0, 0.0))  # ~6 deg roll error at start
+    assert f.initialise(tilted, np.zeros(3), tr.pos_ned_m[0], tr.vel_ned_m_s[0], 0.0)
+    truth = quat_to_euler(tr.quat)
+    assert abs(math.degrees(f.state().roll_rad - truth[0, 0])) > 4.0
+    gated = 0
+    for k in range(1, len(tr.t_s)):
+        f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], 0.01)
+        if k % 10 == 0:
+            noise = np.random.default_rng(k).normal(0.0, 0.02, 2)
+            res = f.update_attitude(truth[k, 0] + noise[0], truth[k, 1] + noise[1], quality=0.8, latency_s=0.05)
+            gated += res.reason == "gated"
+    s = f.state()
+    assert abs(math.degrees(s.roll_rad - truth[-1, 0])) < 1.0
+    assert abs(math.degrees(s.pitch_rad - truth[-1, 1])) < 1.0
+    assert s.last_attitude_innovation.shape == (2,) and math.isfinite(s.last_attitude_nis)
+    # a wild outlier is gated, not swallowed
+    res = f.update_attitude(truth[-1, 0] + 0.8, truth[-1, 1], quality=1.0)
+    assert res.reason == "gated" and res.nis > res.gate
+    assert s.faults == 0
+
+
+def test_predict_cost(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
+    tr, imu, gps = turn_flight
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0], gps.vel_ned_m_s[0])
+    gyro, accel = imu.gyro_rad_s.tolist(), imu.accel_m_s2.tolist()
+    costs = []
+    for k in range(1, 3001):
+        t0 = time.perf_counter_ns()
+        f.predict(gyro[k], accel[k], 0.01)
+        costs.append(time.perf_counter_ns() - t0)
+    assert float(np.median(costs)) / 1e3 < 300.0
+
+
+def test_constructor_validates_tuning() -> None:
+    with pytest.raises(ValueError, match="gyro_noise_rad_s_rt_hz"):
+        Eskf(gyro_noise_rad_s_rt_hz=0.0)
+    with pytest.raises(ValueError, match="gps_gate_prob"):
+        Eskf(gps_gate_prob=1.5)
+    f = Eskf()
+    assert f.update_gps((0, 0, 0), (0, 0, 0), 1.0, 1.0).reason == "not_initialised"
+    assert f.predict((0, 0, 0), (0, 0, -9.8), 0.01) is False
+    assert not f.initialise((0, 0, 0), (0, 0, 0), (0, 0, 0), (0, 0, 0))
+    assert not f.initialise((0, 0, -9.8), (0, 0, 0), (0, 0, math.inf), (0, 0, 0))
