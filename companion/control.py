@@ -57,7 +57,7 @@ class Pid:
 
 class ControlThread(ManagedThread):
     def __init__(self, *, name: str = "control", thread_id: int = 5) -> None:
-        super().__init__(name, thread_id=thread_id, watchdog_ms=500, message_ms=1000,
+        super().__init__(name, thread_id=thread_id, watchdog_ms=1000, message_ms=1000,
                          budget_ms=2.0, param_prefix="CTL")
         self._seen = 0
         self._engaged = False

@@ -223,8 +223,9 @@ class Runtime:
                 {"name": s.name, "cycles": s.cycles, "restarts": s.restarts, "stalls": s.stalls,
                  "failed": s.failed, "rate_hz": round(s.measured_rate_hz, 2),
                  "mean_step_us": round(s.mean_step_us, 1), "missed_deadlines": s.missed_deadlines,
-                 "log_dropped": s.log_dropped}
-                for s in self.manager.thread_status()
+                 "log_dropped": s.log_dropped,
+                 **({"counters": t.counters()} if hasattr(t, "counters") else {})}
+                for s, t in zip(self.manager.thread_status(), self.manager.threads, strict=True)
             ],
             "files": {p.name: p.stat().st_size for p in files},
         }

@@ -352,3 +352,20 @@ def test_sigkill_keeps_everything_older_than_half_a_second(tmp_path: Path, run_s
     assert len(seqs) > must_have
     arrays = lf.streams_of(2)[0].arrays()
     assert [len(a) for a in arrays] == [(7 * k) % 50 for k in range(len(arrays))]
+
+
+def test_log_opened_while_the_writer_drains_keeps_its_definitions(tmp_path: Path) -> None:
+    """Regression: a log opened after the writer took its list of files lost its first records
+    (the format definitions), leaving a file that starts with an undefined Data Block."""
+    svc = LogService(tmp_path)
+    late = svc.open("late")
+    late.define(1, "%d", ["b"])
+    late.log(1, 7)
+    # the race: the writer's snapshot of sinks was taken before "late" was registered
+    with svc._lock:
+        svc._sinks.remove(late._sink)
+    svc._drain()
+    with svc._lock:
+        svc._sinks.append(late._sink)
+    svc.close()
+    assert list(read_log(tmp_path / "late.bin").data(1)["b"]) == [7]

@@ -65,6 +65,26 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     assert np.all(np.isfinite(truth["roll_rad"]))
     assert truth["time_s"][-1] - truth["time_s"][0] > duration * 0.9
     assert summary["simulator"]["real_time_factor"] > 4.0
+    if scenario == "auto":
+        check_auto_levels_wings(fdir)
+
+
+def check_auto_levels_wings(fdir: Path) -> None:
+    """The pilot banks to 30 deg, then engages automatic mode: the law levels and holds height."""
+    truth = read_log(fdir / "truth.bin")
+    state, surfaces = truth.data(1), truth.data(2)
+    engaged = surfaces["time_s"][np.argmax(surfaces["auto_active"] == 1)]
+    assert surfaces["auto_active"].any(), "automatic mode never engaged"
+    before = state[(state["time_s"] > engaged - 2) & (state["time_s"] < engaged)]
+    assert np.degrees(np.abs(before["roll_rad"])).mean() > 20, "the pilot was not banked"
+    after = state[state["time_s"] > engaged + 10]
+    assert len(after) > 100
+    assert np.degrees(np.abs(after["roll_rad"])).max() < 8.0
+    assert np.degrees(np.abs(after["roll_rad"])).mean() < 3.0
+    alt0 = float(np.interp(engaged, state["time_s"], state["alt_m"]))
+    assert np.abs(after["alt_m"] - alt0).max() < 10.0
+    control = read_log(fdir / "control.bin").data(1)
+    assert control["enabled"].any()
 
 
 def test_sigterm_stops_cleanly_within_one_second(tmp_path: Path) -> None:

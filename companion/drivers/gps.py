@@ -39,7 +39,7 @@ def solution_to_fix(sol: GpsSolution, t_ns: int) -> GpsFix:
 class GpsDriver(SerialDevice):
     def __init__(self, url: str, baudrate: int = 115200, *, name: str = "gps", thread_id: int = 2) -> None:
         super().__init__(name, thread_id=thread_id, url=url, baudrate=baudrate,
-                         watchdog_ms=500, message_ms=1000, budget_ms=5.0, read_timeout_s=0.02)
+                         watchdog_ms=1000, message_ms=1000, budget_ms=5.0, read_timeout_s=0.02)
         self.decoder = self._new_decoder(allow_no_checksum=False, idle_ms=20)
 
     @staticmethod

@@ -17,7 +17,7 @@ FMT_RAW = 3
 class ImuDriver(SerialDevice):
     def __init__(self, url: str, baudrate: int = 115200, *, name: str = "imu", thread_id: int = 1) -> None:
         super().__init__(name, thread_id=thread_id, url=url, baudrate=baudrate,
-                         watchdog_ms=200, message_ms=1000, budget_ms=2.0)
+                         watchdog_ms=500, message_ms=1000, budget_ms=2.0)
         self.decoder = ImuDecoder()
         self.log_raw = True
 

@@ -42,7 +42,7 @@ COUNTER_WRAP = 100
 
 class EstimatorThread(ManagedThread):
     def __init__(self, *, name: str = "estimator", thread_id: int = 4) -> None:
-        super().__init__(name, thread_id=thread_id, watchdog_ms=500, message_ms=1000,
+        super().__init__(name, thread_id=thread_id, watchdog_ms=1000, message_ms=1000,
                          budget_ms=3.0, param_prefix="EST")
         self.filter: Eskf | None = None
         self.frame: NedFrame | None = None

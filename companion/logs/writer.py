@@ -544,6 +544,10 @@ class LogService:
                 batch = groups[sink] = []
             batch.append(record)
         for sink, batch in groups.items():
+            if not sink.opened:
+                # opened by a producer after the snapshot above: open it now, or its first
+                # records (the format definitions) would be lost
+                sink.open()
             try:
                 sink.write(batch)
             except Exception:  # a bug in one sink must not stop the others

@@ -66,7 +66,7 @@ class WorldProcess:
             cmd += ["--fault", f]
         for v in opts.vanish:
             cmd += ["--vanish", v]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE,
                                      text=True)
         self.stats: dict[str, Any] = {}
         self.devices = self._wait_ready()
@@ -89,6 +89,15 @@ class WorldProcess:
             self.stop()
             raise SimError(f"the simulator did not start (exit code {self.proc.returncode})")
         return dict(result["devices"])
+
+    def go(self) -> None:
+        """Start the flight: the runtime's ports are open."""
+        assert self.proc.stdin is not None
+        try:
+            self.proc.stdin.write("GO\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError) as exc:
+            raise SimError(f"the simulator died before the flight started: {exc}") from None
 
     def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
         if self.proc.poll() is None:
@@ -125,6 +134,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                 rt.ctx.params.set("GPS_PASHR", 1)
             if on_runtime is not None:
                 on_runtime(rt)
+            rt.start()
+            world.go()
             t0 = time.monotonic()
             rt.run(duration_s, handle_signals=handle_signals)
             host_s = time.monotonic() - t0

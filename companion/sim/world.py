@@ -47,6 +47,7 @@ IMU_DT_S = 0.01
 GPS_EVERY = 10  # IMU ticks per GPS epoch
 PILOT_EVERY = 2  # IMU ticks per servo-board frame (50 Hz)
 TRUTH_EVERY = 1
+GO_TIMEOUT_S = 120.0
 DEVICES = ("imu", "gps", "servo")
 
 FMT_TRUTH = 1
@@ -401,6 +402,13 @@ def main(argv: list[str] | None = None) -> int:
     ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in DEVICES}
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
     print("READY " + json.dumps(ready), flush=True)
+    # Fly only once the runtime has opened its ports: until then nobody would read the devices.
+    ready_to_fly, _, _ = select.select([sys.stdin], [], [], GO_TIMEOUT_S)
+    if not ready_to_fly or sys.stdin.readline().strip() != "GO":
+        for pty in world.ptys.values():
+            pty.close()
+        print("companion.sim.world: the runtime never said GO", file=sys.stderr)
+        return 1
     stats = world.run()
     print("STATS " + json.dumps(stats), flush=True)
     return 0
