@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import logging
 import sys
 from collections.abc import Callable
@@ -221,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--imu", metavar="PORT", help="IMU serial port (overrides the configuration)")
     run.add_argument("--gps", metavar="PORT", help="GPS serial port")
     run.add_argument("--servo", metavar="PORT", help="servo-board serial port")
-    run.set_defaults(func=cmd_run)
+    run.set_defaults(func=cmd_run, fast_exit=True)
 
     sim_add = _optional("companion.sim.cli", "add_commands")
     if sim_add is not None:
@@ -270,12 +271,20 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(func(args) or 0)
+        rc = int(func(args) or 0)
     except ConfigError as exc:
         print(f"companion: configuration error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
+    if getattr(args, "fast_exit", False):
+        # Every thread is stopped and every log closed by now; skip the interpreter's teardown
+        # of numpy/scipy modules (over half a second), so a SIGTERM ends the process promptly.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+        os._exit(rc)
+    return rc
 
 
 if __name__ == "__main__":

@@ -109,4 +109,4 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
                    help="auto scenario: when the pilot engages automatic mode")
     p.add_argument("--no-noise", action="store_true", help="perfect IMU (no noise or bias)")
-    p.set_defaults(func=cmd_sim)
+    p.set_defaults(func=cmd_sim, fast_exit=True)
