@@ -40,6 +40,7 @@ def surfaces_to_us(out: ControlOutput) -> tuple[int, ...]:
 
 
 class ServoDriver(SerialDevice):
+    max_catch_up = 3
     def __init__(self, url: str, baudrate: int = 115200, *, name: str = "servo", thread_id: int = 3) -> None:
         super().__init__(name, thread_id=thread_id, url=url, baudrate=baudrate, period_ms=20.0,
                          budget_ms=15.0, watchdog_ms=500, message_ms=1000, read_timeout_s=0.005)

@@ -105,6 +105,10 @@ class ManagedThread:
 
     #: Restart type (OTP). Transient by default: a thread that decides to terminate stays down.
     restart: RestartType = RestartType.TRANSIENT
+    #: Timer threads: how many whole lost periods are caught up (run back to back) before
+    #: lost cycles are dropped instead. 0 keeps the phase at any cost; an exchange with a
+    #: device (the servo board) would rather catch up a short hiccup than lose commands.
+    max_catch_up: int = 0
 
     def __init__(
         self,
@@ -364,8 +368,9 @@ class ManagedThread:
                         # late: run the next cycle at once, but if a whole period or more
                         # was lost, drop those cycles rather than bunch them (keeps the phase)
                         self.missed_deadlines += 1
-                        if now - next_ns >= period_ns:
-                            next_ns += (now - next_ns) // period_ns * period_ns
+                        behind = (now - next_ns) // period_ns
+                        if behind > self.max_catch_up:
+                            next_ns += behind * period_ns
                     if clock.wait_until_ns(next_ns, stop):
                         break
             self._exit_kind = "normal"

@@ -1,0 +1,194 @@
+"""MavlinkBridge: the runtime's MAVLink face, one link per endpoint.
+
+Built once per vehicle by the runtime (`companion run` / `companion sim`, `--mavlink URL`,
+repeatable, or `[mavlink] endpoints`). Construction opens nothing (so a dry build for
+documentation is harmless): each link's receive and send threads are handed to the thread
+manager, which opens the link when it starts them and supervises them like any other thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from companion.config import ConfigError
+from companion.watchdog import RuntimeContext, ThreadManager
+from gcs_bridge import status
+from gcs_bridge.commands import CommandHandler, LoggingControl
+from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
+from gcs_bridge.dialect import Identity
+from gcs_bridge.dispatch import Dispatcher
+from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
+from gcs_bridge.link import Link, LinkReceiver, LinkSender
+from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.signing import LinkPolicy, read_key_file
+
+log = logging.getLogger(__name__)
+
+MAX_LINKS = 10  # thread parameter prefixes MAV<n>RX / MAV<n>TX have room for one digit
+PERSIST_QUIET_S = 0.2  # parameters are saved once changes pause this long...
+PERSIST_MAX_DELAY_S = 2.0  # ...or at the latest this long after the first unsaved change
+
+
+class MavlinkBridge:
+    """MAVLink 2 endpoints for one vehicle (see docs/ground-stations.md).
+
+    `endpoints`: pymavlink connection strings, each optionally with `?` settings (see
+    `gcs_bridge.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
+    given, writes must be signed on every link that does not say `signing=off`, and unsigned
+    reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`) says so.
+    `identity`: "px4" (bytewise integer parameters, the default) or "ardupilot" (C cast).
+    `logging_control(start) -> error or None`: starts/stops the runtime's logs on
+    MAV_CMD_LOGGING_START/STOP (the tlogs follow those commands in any case).
+    """
+
+    def __init__(
+        self,
+        ctx: RuntimeContext,
+        manager: ThreadManager,
+        endpoints: Sequence[str | Endpoint] = (DEFAULT_ENDPOINT,),
+        *,
+        key_file: str | Path | None = None,
+        allow_unsigned_reads: bool = True,
+        identity: Identity | str = Identity.PX4,
+        logging_control: LoggingControl | None = None,
+        tlog: bool = True,
+    ) -> None:
+        parsed = [e if isinstance(e, Endpoint) else parse_endpoint(e) for e in endpoints]
+        if len(parsed) > MAX_LINKS:
+            raise EndpointError(", ".join(e.text for e in parsed[MAX_LINKS:]),
+                                f"at most {MAX_LINKS} MAVLink endpoints")
+        try:
+            ident = identity if isinstance(identity, Identity) else Identity(str(identity).lower())
+        except ValueError:
+            raise ConfigError(f"MAVLink identity {identity!r}: use 'px4' or 'ardupilot'") from None
+        key: bytes | None = None
+        if key_file:
+            key, _passphrase = read_key_file(Path(key_file))
+        ctx.params.declare_all(BRIDGE_PARAMS)
+        self.ctx = ctx
+        self.manager = manager
+        self.core = BridgeCore(ctx, manager, ident)
+        self.params = ParamProtocol(self.core)
+        self._tlog_recording = True
+        self.commands = CommandHandler(self.core, logging_control=logging_control,
+                                       set_tlog_recording=self._set_tlog_recording)
+        self.dispatcher = Dispatcher(self.core, self.params, self.commands)
+        self.text_ids = status.StatusTextIds()
+        self.links: list[Link] = []
+        self.threads: list[LinkReceiver | LinkSender] = []
+        self._senders: list[LinkSender] = []
+        next_id = max((t.thread_id for t in manager.threads), default=0) + 1
+        for index, ep in enumerate(parsed):
+            signing_on = key is not None and ep.signing is not False
+            unsigned_reads = allow_unsigned_reads if ep.unsigned_reads is None else ep.unsigned_reads
+            policy = LinkPolicy(key if signing_on else None, unsigned_reads)
+            tlog_path = (Path(ctx.flight_dir) / f"mavlink-{index}.tlog"
+                         if tlog and ctx.flight_dir is not None else None)
+            link = Link(index, ep, self.core, self.dispatcher, self.params, policy,
+                        events=manager.subscribe_events(), text_ids=self.text_ids,
+                        tlog_path=tlog_path, tlog_enabled=self._tlog_on,
+                        broadcast_text=self.broadcast_text)
+            rx = LinkReceiver(link, next_id)
+            tx = LinkSender(link, next_id + 1)
+            next_id += 2
+            manager.add(rx)
+            manager.add(tx)
+            self.links.append(link)
+            self.threads += [rx, tx]
+            self._senders.append(tx)
+            log.info("MAVLink %s: signing %s%s", link.describe(),
+                     "on" if policy.signing else "off",
+                     ", unsigned reads accepted" if policy.signing and unsigned_reads else "")
+        self._first_unsaved = 0.0
+        self._last_change = 0.0
+        self._unsubscribe = ctx.params.subscribe(self._on_param_changed)
+        manager.on_tick.append(self._persist_params)
+        self._closed = False
+
+    # ------------------------------------------------------------------ fan-out
+    def broadcast_text(self, severity: int, text: str) -> None:
+        """STATUSTEXT to every link (watchdog-like news that concerns every ground station)."""
+        msgs = status.statustext(severity, text, self.text_ids)
+        for link in self.links:
+            link.post(list(msgs))
+
+    def _on_param_changed(self, name: str, _value: object) -> None:
+        # Runs in whichever thread changed the parameter: only queue the announcement.
+        now = time.monotonic()
+        if not self._first_unsaved:
+            self._first_unsaved = now
+        self._last_change = now
+        index = self.params.index_of(name)
+        if index is None:
+            return
+        for link, sender in zip(self.links, self._senders, strict=True):
+            if sender.running:  # values loaded at start-up are not news
+                link.post_param(index)
+
+    def _persist_params(self) -> None:
+        """Manager tick hook (main thread): save changed parameters once changes pause."""
+        if not self._first_unsaved:
+            return
+        now = time.monotonic()
+        if now - self._last_change < PERSIST_QUIET_S and now - self._first_unsaved < PERSIST_MAX_DELAY_S:
+            return
+        self._first_unsaved = 0.0
+        try:
+            self.ctx.params.flush()
+        except OSError as exc:
+            log.error("could not save parameters: %s", exc)
+
+    def _set_tlog_recording(self, on: bool) -> None:
+        self._tlog_recording = on
+        log.info("MAVLink tlogs %s", "recording" if on else "paused")
+
+    def _tlog_on(self) -> bool:
+        return self._tlog_recording
+
+    # ------------------------------------------------------------------ inspection
+    def stats(self) -> list[dict[str, Any]]:
+        """Per-link figures (frames, refusals, peers, stream counts, latencies)."""
+        out = []
+        for link in self.links:
+            c = link.counters
+            lat = sorted(link.scheduler.latencies_us)
+            out.append({
+                "index": link.index,
+                "endpoint": link.endpoint.text,
+                "signing": link.policy.signing,
+                "rx_frames": c.rx_frames,
+                "tx_frames": c.tx_frames,
+                "parse_errors": c.parse_errors,
+                "refused": c.refused,
+                "refusals": dict(link.refusals),
+                "queue_dropped": c.queue_dropped,
+                "stale_skips": c.stale_skips,
+                "peers": [(p.system, p.component) for p in link.peers.values()],
+                "transport": vars(link.transport.counters).copy(),
+                "streams_sent": link.scheduler.stats().sent,
+                "latency_us_p50": lat[len(lat) // 2] if lat else None,
+                "latency_us_p99": lat[min(len(lat) - 1, int(len(lat) * 0.99))] if lat else None,
+                "tlog": str(link.tlog.path) if link.tlog is not None else None,
+            })
+        return out
+
+    def close(self) -> None:
+        """Detach from the registry and the manager (after the manager's shutdown)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._unsubscribe()
+        try:
+            self.manager.on_tick.remove(self._persist_params)
+        except ValueError:
+            pass
+        if self._first_unsaved:
+            self._first_unsaved = 0.0
+            try:
+                self.ctx.params.flush()
+            except OSError as exc:
+                log.error("could not save parameters: %s", exc)

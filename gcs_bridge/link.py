@@ -1,0 +1,481 @@
+"""One MAVLink link: its transport, its two managed threads, its queue, rates and tlog.
+
+The receive thread reads the transport, parses, applies the signing policy and dispatches;
+the send thread is the only one that writes to the transport. It is paced by its queue (answers
+posted by the receive thread, the thread manager and parameter changes) with a timeout set by
+the next telemetry stream due, so an answer leaves at once and telemetry leaves on time.
+
+Everything a link remembers between messages (rates set by ground stations, the parameter list
+in progress, the thread-status rotation) lives here rather than in the threads, so a thread
+restarted by the watchdog carries on where it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from companion.sync import MessageQueue
+from companion.watchdog import ManagedThread, ThreadStatus, WatchdogEvent
+from gcs_bridge import status, telemetry
+from gcs_bridge.core import BridgeCore
+from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, RxMessage, mavlink
+from gcs_bridge.dialect import Message as Msg
+from gcs_bridge.endpoints import Endpoint
+from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
+from gcs_bridge.streams import StreamScheduler, stream_for, streams_in_group
+from gcs_bridge.tlog import TlogWriter
+from gcs_bridge.transport import Transport, make_transport
+
+if TYPE_CHECKING:
+    from gcs_bridge.dispatch import Dispatcher
+    from gcs_bridge.param_protocol import ParamProtocol
+
+log = logging.getLogger(__name__)
+
+QUEUE_CAPACITY = 2048
+RECV_TIMEOUT_S = 0.1  # clock seconds: the receive thread's longest wait
+ITEMS_PER_CYCLE = 256
+REFUSAL_REPORT_S = 5.0  # at most one STATUSTEXT about refused messages per link per this
+PEER_MEMORY = 32
+TLOG_FLUSH_S = 1.0
+PARAM_BATCH_PAUSE_NS = 5_000_000  # between MAV_PARAM_BURST-sized batches of a list
+
+SenderItem = list[Msg] | Callable[["Link"], None]
+
+
+@dataclass(frozen=True)
+class Peer:
+    system: int
+    component: int
+    mav_type: int
+    last_seen_s: float
+
+
+class Link:
+    """State shared by one link's receive and send threads (see the module docstring)."""
+
+    def __init__(self, index: int, endpoint: Endpoint, core: BridgeCore, dispatcher: Dispatcher,
+                 params: ParamProtocol, policy: LinkPolicy, *, events: MessageQueue[WatchdogEvent],
+                 text_ids: status.StatusTextIds, tlog_path: Path | None,
+                 tlog_enabled: Callable[[], bool], broadcast_text: Callable[[int, str], None],
+                 transport: Transport | None = None) -> None:
+        self.index = index
+        self.endpoint = endpoint
+        self.core = core
+        self.dispatcher = dispatcher
+        self.params = params
+        self.policy = policy
+        self.events = events
+        self.text_ids = text_ids
+        self.transport = transport if transport is not None else make_transport(endpoint)
+        self.queue: MessageQueue[SenderItem] = MessageQueue(QUEUE_CAPACITY)
+        self.counters = status.LinkCounters()
+        self.scheduler = StreamScheduler(core)
+        self.tlog = TlogWriter(tlog_path) if tlog_path is not None else None
+        self._tlog_enabled = tlog_enabled
+        self._broadcast_text = broadcast_text
+        self._refs = 0
+        # receive side
+        self._parsers: OrderedDict[Hashable, mavlink.MAVLink] = OrderedDict()
+        self._checker = (SignatureChecker(policy.key, self._now_timestamp)
+                         if policy.key is not None else None)
+        self.peers: OrderedDict[tuple[int, int], Peer] = OrderedDict()
+        self.refusals: dict[str, int] = {}
+        self._refused_unreported = 0
+        self._last_refusal_report = 0.0
+        # send side
+        self.mav_out = mavlink.MAVLink(None, core.sysid, core.compid)
+        if policy.key is not None:
+            self.mav_out.signing.secret_key = policy.key
+            self.mav_out.signing.link_id = index & 0xFF
+            self.mav_out.signing.sign_outgoing = True
+        self._param_cursor: int | None = None
+        self._rotation = 0
+        self._home_origin: tuple[float, float, float] | None = None
+        self._pack_errors = 0
+        self._initial_rates_applied = False
+
+    # ------------------------------------------------------------------ lifecycle (main thread)
+    def acquire(self) -> None:
+        """Open the transport and tlog with the first of the link's threads to start."""
+        if self._refs == 0:
+            self.transport.open()
+            if self.tlog is not None and not self.tlog.is_open:
+                try:
+                    self.tlog.open()
+                except OSError as exc:
+                    log.error("link %d: cannot open tlog %s: %s", self.index, self.tlog.path, exc)
+        self._refs += 1
+
+    def release(self) -> None:
+        """Close them with the last one to stop (idempotent per acquire)."""
+        if self._refs == 0:
+            return
+        self._refs -= 1
+        if self._refs == 0:
+            self.transport.close()
+            if self.tlog is not None:
+                self.tlog.close()
+
+    # ------------------------------------------------------------------ posting (any thread)
+    def post(self, item: SenderItem) -> bool:
+        ok = self.queue.put(item)
+        if not ok:
+            self.counters.queue_dropped += 1
+        return ok
+
+    def post_param(self, index: int) -> bool:
+        return self.post(lambda link: link.send_param(index))
+
+    def start_param_list(self) -> bool:
+        return self.post(lambda link: link.begin_param_list())
+
+    def notify(self, severity: int, text: str) -> None:
+        self.post(status.statustext(severity, text, self.text_ids))
+
+    @staticmethod
+    def can_provide(msg_id: int) -> bool:
+        """Whether REQUEST_MESSAGE can be answered for this message id."""
+        return (msg_id in (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, MSG_ID_PROTOCOL_VERSION)
+                or stream_for(msg_id) is not None)
+
+    def request_message(self, msg_id: int, target: tuple[int, int]) -> bool:
+        """REQUEST_MESSAGE: post the message's production to the sender; False if unknown."""
+        if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return self.post([status.autopilot_version(self.core)])
+        if msg_id == MSG_ID_PROTOCOL_VERSION:
+            return self.post([status.protocol_version()])
+        if stream_for(msg_id) is None:
+            return False
+        return self.post(lambda link: link.send_stream_now(msg_id))
+
+    def set_interval(self, msg_id: int, interval_us: int) -> bool:
+        if stream_for(msg_id) is None:
+            return False
+        self.post(lambda link: link._apply_interval(msg_id, interval_us))
+        return True
+
+    def interval_us(self, msg_id: int) -> int:
+        return self.scheduler.interval_us(msg_id)
+
+    def data_stream(self, stream_id: int, rate_hz: int, start: bool) -> None:
+        """REQUEST_DATA_STREAM (deprecated but still sent by MAVProxy and older GCSs)."""
+        specs = streams_in_group(stream_id)
+        if not specs:
+            return
+        interval = int(1e6 / rate_hz) if start and rate_hz > 0 else -1
+
+        def apply(link: Link) -> None:
+            for spec in specs:
+                link._apply_interval(spec.msg_id, interval)
+        self.post(apply)
+
+    # ------------------------------------------------------------------ receive thread
+    @staticmethod
+    def _now_timestamp() -> int:
+        # the host's wall clock, not the runtime's (which a --fast simulation speeds up): the
+        # ground stations' signing clocks are real ones
+        return signing_timestamp(time.time_ns())
+
+    def reset_parsers(self) -> None:
+        self._parsers.clear()
+
+    def _parser(self, peer: Hashable) -> mavlink.MAVLink:
+        parser = self._parsers.get(peer)
+        if parser is None:
+            parser = mavlink.MAVLink(None, 0, 0)
+            parser.robust_parsing = True
+            self._parsers[peer] = parser
+            while len(self._parsers) > PEER_MEMORY:
+                self._parsers.popitem(last=False)
+        else:
+            self._parsers.move_to_end(peer)
+        return parser
+
+    def receive(self, timeout_s: float, on_data: Callable[[], None] | None = None) -> int:
+        """Read, parse, check and dispatch what arrives within timeout_s; returns frames."""
+        frames = 0
+        chunks = self.transport.recv(timeout_s)
+        if on_data is not None:
+            on_data()
+        for peer, data in chunks:
+            parser = self._parser(peer)
+            try:
+                msgs = parser.parse_buffer(data) or []
+            except Exception as exc:  # pymavlink raises on some malformed input: drop it
+                self.counters.parse_errors += 1
+                log.debug("link %d: unparsable data from %s: %s", self.index, peer, exc)
+                self._parsers.pop(peer, None)
+                continue
+            for msg in msgs:
+                frames += 1
+                self._on_message(msg)
+        return frames
+
+    def _on_message(self, msg: RxMessage) -> None:
+        if msg.get_type() == "BAD_DATA":
+            self.counters.parse_errors += 1
+            return
+        frame = msg.get_msgbuf()
+        self._tlog(frame)
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if src == (self.core.sysid, self.core.compid):
+            return  # our own frames echoed (loopback radios, broadcast UDP)
+        self.counters.rx_frames += 1
+        if self._checker is not None:
+            why = self._checker.check(frame) if frame[0] == 0xFD and frame[2] & 0x01 else "unsigned"
+            if why is not None:
+                command = getattr(msg, "command", None)
+                if not (why == "unsigned" and self.policy.unsigned_reads
+                        and not is_write(msg.get_msgId(), command)):
+                    self.refuse(msg, why)
+                    return
+        self.dispatcher.handle(self, msg)
+
+    def refuse(self, msg: RxMessage, why: str) -> None:
+        """Count a refused message and report it (rate-limited); it is never acted on."""
+        self.counters.refused += 1
+        self.refusals[why] = self.refusals.get(why, 0) + 1
+        self._refused_unreported += 1
+        now = time.monotonic()
+        what = msg.get_type()
+        if what in ("COMMAND_LONG", "COMMAND_INT"):
+            what += f" {getattr(msg, 'command', '?')}"
+        log.warning("link %d: refused %s from %d/%d: %s", self.index, what, msg.get_srcSystem(),
+                    msg.get_srcComponent(), why)
+        if now - self._last_refusal_report >= REFUSAL_REPORT_S:
+            n, self._refused_unreported = self._refused_unreported, 0
+            self._last_refusal_report = now
+            self._broadcast_text(int(mavlink.MAV_SEVERITY_WARNING),
+                                 f"link {self.index}: refused {n}: {why} {what}")
+
+    def note_peer(self, system: int, component: int, mav_type: int) -> None:
+        key = (system, component)
+        if key not in self.peers:
+            log.info("link %d: %s %d/%d heard", self.index,
+                     "ground station" if mav_type == mavlink.MAV_TYPE_GCS else "peer",
+                     system, component)
+        self.peers[key] = Peer(system, component, mav_type, time.monotonic())
+        self.peers.move_to_end(key)
+        while len(self.peers) > PEER_MEMORY:
+            self.peers.popitem(last=False)
+
+    # ------------------------------------------------------------------ send thread
+    def _tlog(self, frame: bytes | bytearray) -> None:
+        if self.tlog is not None and self._tlog_enabled():
+            self.tlog.write(self.core.now_real_ns() // 1000, frame)
+
+    def emit(self, msgs: list[Msg]) -> None:
+        """Pack and send messages (the send thread only)."""
+        signing = self.mav_out.signing
+        for msg in msgs:
+            if signing.sign_outgoing:
+                signing.timestamp = max(signing.timestamp, self._now_timestamp())
+            try:
+                frame = msg.pack(self.mav_out)
+            except Exception as exc:  # a field out of its type's range: a bug, logged once
+                self._pack_errors += 1
+                if self._pack_errors in (1, 100):
+                    log.error("link %d: cannot pack %s: %s", self.index, msg.get_type(), exc)
+                continue
+            self.mav_out.seq = (self.mav_out.seq + 1) & 0xFF
+            if self.transport.send(frame):
+                self.counters.tx_frames += 1
+            self._tlog(frame)
+
+    def run_item(self, item: SenderItem) -> None:
+        if isinstance(item, list):
+            self.emit(item)
+        else:
+            item(self)
+
+    def send_param(self, index: int) -> None:
+        msg = self.params.value_message(index)
+        if msg is not None:
+            self.emit([msg])
+
+    def begin_param_list(self) -> None:
+        self._param_cursor = 0
+
+    def param_list_step(self, burst: int) -> int:
+        """Send the next parameters of a list in progress; returns ns until the next batch."""
+        if self._param_cursor is None:
+            return 1 << 62
+        count = self.params.count()
+        bps = self.transport.bytes_per_s
+        if bps is not None:  # a radio: leave half the bandwidth to telemetry
+            burst = max(1, min(burst, int(bps * 0.5 * 0.02 / 40)))
+            pause_ns = 20_000_000
+        else:  # a network: still in batches, so a busy client's socket buffer does not overflow
+            pause_ns = PARAM_BATCH_PAUSE_NS
+        end = min(count, self._param_cursor + burst)
+        msgs = [m for i in range(self._param_cursor, end)
+                if (m := self.params.value_message(i)) is not None]
+        self.emit(msgs)
+        self._param_cursor = end if end < count else None
+        return pause_ns if self._param_cursor is not None else 1 << 62
+
+    def _apply_interval(self, msg_id: int, interval_us: int) -> None:
+        self.scheduler.set_interval(msg_id, interval_us, self.core.ctx.clock.monotonic_ns())
+
+    def apply_initial_rates(self) -> None:
+        if self._initial_rates_applied:
+            return
+        self._initial_rates_applied = True
+        for msg_id, hz in self.endpoint.rates_hz.items():
+            self._apply_interval(msg_id, -1 if hz <= 0 else int(1e6 / hz))
+
+    def send_stream_now(self, msg_id: int) -> None:
+        spec = stream_for(msg_id)
+        if spec is None:
+            return
+        value: Any = None
+        if spec.source is not None:
+            value = getattr(self.core.ctx.state, spec.source).read()
+            if value is None:
+                return
+        self.emit(spec.build(self.core, value, self))
+
+    def next_thread_status(self) -> ThreadStatus | None:
+        statuses = self.core.manager.thread_status()
+        if not statuses:
+            return None
+        st = statuses[self._rotation % len(statuses)]
+        self._rotation += 1
+        return st
+
+    def send_events(self) -> None:
+        for event in self.events.drain():
+            self.emit(status.statustext(event.severity, event.text(), self.text_ids))
+
+    def check_home(self) -> None:
+        """Announce HOME_POSITION when the estimator's origin appears or moves."""
+        home = telemetry.home_of(self.core)
+        if home is not None and home != self._home_origin:
+            self._home_origin = home
+            self.emit(telemetry.home_position(self.core))
+
+    def drain_on_exit(self) -> None:
+        """Send what is still queued (last words such as a shutdown's COMMAND_ACK)."""
+        for item in self.queue.drain()[:ITEMS_PER_CYCLE]:
+            try:
+                self.run_item(item)
+            except Exception:
+                log.exception("link %d: sending a queued item at exit", self.index)
+        if self.tlog is not None:
+            self.tlog.flush()
+
+    def describe(self) -> str:
+        return f"link {self.index} ({self.endpoint.url})"
+
+
+# ---------------------------------------------------------------------------------- threads
+class LinkReceiver(ManagedThread):
+    """Receives for one link; paced by the transport with a bounded wait."""
+
+    def __init__(self, link: Link, thread_id: int) -> None:
+        super().__init__(f"mav{link.index}rx", thread_id=thread_id, watchdog_ms=1000,
+                         message_ms=5000, budget_ms=5.0)
+        self.link = link
+
+    def setup(self) -> None:
+        self.link.acquire()
+
+    def cleanup(self) -> None:
+        self.link.release()
+
+    def interrupt_io(self) -> None:
+        self.link.transport.wake()
+
+    def recover(self) -> None:
+        self.link.reset_parsers()
+
+    def step(self) -> bool:
+        self.link.receive(self.ctx.clock.to_host_s(RECV_TIMEOUT_S), self._mark_work)
+        return True  # an absent ground station is not a fault of the aircraft
+
+    def _mark_work(self) -> None:
+        self.work_t0_ns = time.perf_counter_ns()  # step time counts the work, not the wait
+
+
+class LinkSender(ManagedThread):
+    """Sends for one link: queued answers first, then the telemetry that is due.
+
+    Its own `<PREFIX>_MSG_MS` paces the link's statistics (named values `L<n>_...`).
+    """
+
+    def __init__(self, link: Link, thread_id: int) -> None:
+        super().__init__(f"mav{link.index}tx", thread_id=thread_id, watchdog_ms=1000,
+                         message_ms=5000, budget_ms=5.0)
+        self.link = link
+        self._wait_host_s = 0.0
+        self._next_stats_ns = 0
+        self._next_flush_ns = 0
+
+    def setup(self) -> None:
+        self.link.acquire()
+
+    def cleanup(self) -> None:
+        try:
+            self.link.drain_on_exit()
+        finally:
+            self.link.release()
+
+    def interrupt_io(self) -> None:
+        self.link.queue.put(_noop)  # wakes the sender's wait at once
+
+    def prologue(self) -> bool:
+        self.link.apply_initial_rates()
+        self._wait_host_s = 0.0
+        return True
+
+    def step(self) -> bool:
+        link = self.link
+        clock = self.ctx.clock
+        awaited = link.scheduler.awaited
+        if awaited is not None and self._wait_host_s > 0 and not len(link.queue):
+            # a due stream waits for its next sample: wake with the sample, not after a poll
+            slot, version = awaited
+            slot.wait_newer(version, self._wait_host_s)
+            item = link.queue.get_nowait()
+        else:
+            item = link.queue.get(self._wait_host_s)
+        self.work_t0_ns = time.perf_counter_ns()  # step time counts the work, not the wait
+        handled = 0
+        while item is not None and not self.stop_requested:
+            link.run_item(item)
+            handled += 1
+            if handled >= ITEMS_PER_CYCLE:
+                break
+            item = link.queue.get_nowait()
+        now = clock.monotonic_ns()
+        wait_ns = link.scheduler.service(now, link, link.emit)
+        burst = int(self.ctx.params.get("MAV_PARAM_BURST"))
+        wait_ns = min(wait_ns, link.param_list_step(burst))
+        link.send_events()
+        link.check_home()
+        if now >= self._next_stats_ns:
+            if self._next_stats_ns:
+                link.emit(status.link_messages(link.core, link.index, link.counters))
+            self._next_stats_ns = now + int(self.message_ms * 1e6)
+        wait_ns = min(wait_ns, self._next_stats_ns - now)
+        if now >= self._next_flush_ns and link.tlog is not None:
+            link.tlog.flush()
+            self._next_flush_ns = now + int(TLOG_FLUSH_S * 1e9)
+        if len(link.queue):
+            wait_ns = 0
+        self._wait_host_s = clock.to_host_s(max(0, wait_ns) / 1e9)
+        return True
+
+
+def _noop(_link: Link) -> None:
+    """Queued only to wake the sender."""
+
+
+__all__ = ["Link", "LinkReceiver", "LinkSender", "Peer"]

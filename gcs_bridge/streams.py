@@ -1,0 +1,321 @@
+"""The telemetry streams: one table row per message, and the per-link scheduler that runs it.
+
+A stream's default period is the message period (`<PREFIX>_MSG_MS`) of the thread that
+produces its data, so the parameters that pace the legacy monitor pace MAVLink too;
+MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM override it for one link.
+
+Streams fed by a data slot are sent *with* the data: once a stream is due, it goes out as soon
+as its slot holds a sample newer than the last one sent, so a message leaves within about a
+millisecond of the device frame that caused it instead of up to a whole period later. When no
+new sample comes within one period, that slot is skipped (counted), never filled with stale
+data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from companion.sync import WaitableSlot
+from gcs_bridge import status, telemetry
+from gcs_bridge.core import (
+    THREAD_ESTIMATOR,
+    THREAD_GPS,
+    THREAD_IMU,
+    THREAD_SERVO,
+    BridgeCore,
+)
+from gcs_bridge.dialect import Message as Msg
+from gcs_bridge.dialect import mavlink
+
+FALLBACK_PERIOD_MS = 1000
+MIN_INTERVAL_US = 2000  # 500 Hz: faster requests are clamped
+POLL_NS = 1_000_000  # while a due stream waits for fresh data from a slot nobody can wait on
+AWAIT_NS = 1_000_000  # longest wait on one waitable slot (queued answers wait at most this)
+IDLE_NS = 100_000_000  # longest sleep, so the sender's watchdog always sees cycles
+PERIOD_REFRESH_NS = 100_000_000  # how soon a changed message period takes effect
+LATENCY_RING = 2048
+
+
+class LinkSide(Protocol):
+    """What a stream builder may ask of the link it is sending on."""
+
+    index: int
+    counters: status.LinkCounters
+
+    def next_thread_status(self) -> Any: ...
+
+
+Builder = Callable[[BridgeCore, Any, LinkSide], list[Msg]]
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    msg_id: int
+    source: str | None  # VehicleState slot that drives it; None: sent on time alone
+    default_ms: Callable[[BridgeCore], int | None]  # None or 0: off unless requested
+    build: Builder
+    groups: tuple[int, ...] = ()  # REQUEST_DATA_STREAM ids that include it
+
+    @property
+    def name(self) -> str:
+        cls = mavlink.mavlink_map.get(self.msg_id)
+        return str(cls.msgname) if cls is not None else str(self.msg_id)
+
+
+def _thread_period(thread_id: int) -> Callable[[BridgeCore], int | None]:
+    def period(core: BridgeCore) -> int | None:
+        ms = core.thread_message_ms(thread_id)
+        return FALLBACK_PERIOD_MS if ms is None else ms
+    return period
+
+
+def _param_period(name: str) -> Callable[[BridgeCore], int | None]:
+    def period(core: BridgeCore) -> int | None:
+        try:
+            return int(core.ctx.params.get(name))
+        except Exception:
+            return FALLBACK_PERIOD_MS
+    return period
+
+
+def _fixed(ms: int | None) -> Callable[[BridgeCore], int | None]:
+    return lambda core: ms
+
+
+def _b_heartbeat(core: BridgeCore, _v: Any, _l: LinkSide) -> list[Msg]:
+    return [status.heartbeat(core)]
+
+
+def _b_sys_status(core: BridgeCore, _v: Any, link: LinkSide) -> list[Msg]:
+    return [status.sys_status(core, link.counters)]
+
+
+def _b_system_time(core: BridgeCore, _v: Any, _l: LinkSide) -> list[Msg]:
+    return [status.system_time(core)]
+
+
+def _b_thread_status(core: BridgeCore, _v: Any, link: LinkSide) -> list[Msg]:
+    st = link.next_thread_status()
+    return [] if st is None else status.thread_status_messages(core, st)
+
+
+def _b_highres(core: BridgeCore, imu: Any, _l: LinkSide) -> list[Msg]:
+    return telemetry.highres_imu(core, imu, core.ctx.state.imu_slow.read())
+
+
+def _b_scaled(core: BridgeCore, imu: Any, _l: LinkSide) -> list[Msg]:
+    return telemetry.scaled_imu(core, imu, core.ctx.state.imu_slow.read())
+
+
+def _b_vfr(core: BridgeCore, est: Any, _l: LinkSide) -> list[Msg]:
+    control = core.ctx.state.control.read()
+    return telemetry.vfr_hud(core, est, None if control is None else control.throttle)
+
+
+def _wrap(fn: Callable[[BridgeCore, Any], list[Msg]]) -> Builder:
+    return lambda core, value, _link: fn(core, value)
+
+
+DS = mavlink
+STREAMS: tuple[StreamSpec, ...] = (
+    StreamSpec(mavlink.MAVLINK_MSG_ID_HEARTBEAT, None, _fixed(1000), _b_heartbeat),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SYS_STATUS, None, _param_period("MGR_MSTAT_MS"),
+               _b_sys_status, (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, None, _fixed(5000), _b_system_time,
+               (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_NAMED_VALUE_INT, None, _param_period("MGR_STATUS_MS"),
+               _b_thread_status, (DS.MAV_DATA_STREAM_EXTRA3,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, "imu", _thread_period(THREAD_IMU), _b_highres,
+               (DS.MAV_DATA_STREAM_RAW_SENSORS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SCALED_IMU, "imu", _fixed(None), _b_scaled),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, "gps", _thread_period(THREAD_GPS),
+               _wrap(telemetry.gps_raw_int), (DS.MAV_DATA_STREAM_RAW_SENSORS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_ATTITUDE, "estimator", _thread_period(THREAD_ESTIMATOR),
+               _wrap(telemetry.attitude), (DS.MAV_DATA_STREAM_EXTRA1,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, "estimator",
+               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.attitude_quaternion),
+               (DS.MAV_DATA_STREAM_EXTRA1,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, "estimator",
+               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.global_position_int),
+               (DS.MAV_DATA_STREAM_POSITION,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, "estimator",
+               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.local_position_ned),
+               (DS.MAV_DATA_STREAM_POSITION,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_VFR_HUD, "estimator", _thread_period(THREAD_ESTIMATOR),
+               _b_vfr, (DS.MAV_DATA_STREAM_EXTRA2,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_HOME_POSITION, None, _fixed(None),
+               _wrap(telemetry.home_position)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_RC_CHANNELS, "servo", _thread_period(THREAD_SERVO),
+               _wrap(telemetry.rc_channels), (DS.MAV_DATA_STREAM_RC_CHANNELS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, "servo", _thread_period(THREAD_SERVO),
+               _wrap(telemetry.servo_output_raw), (DS.MAV_DATA_STREAM_RC_CHANNELS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, "servo", _thread_period(THREAD_SERVO),
+               _wrap(telemetry.battery_status), (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
+)
+STREAMS_BY_ID: dict[int, StreamSpec] = {s.msg_id: s for s in STREAMS}
+# NAMED_VALUE_FLOAT travels with the thread status (and GPS DOPs): one interval for both
+STREAM_ALIASES = {mavlink.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT: mavlink.MAVLINK_MSG_ID_NAMED_VALUE_INT}
+
+
+def stream_for(msg_id: int) -> StreamSpec | None:
+    return STREAMS_BY_ID.get(STREAM_ALIASES.get(msg_id, msg_id))
+
+
+def streams_in_group(stream_id: int) -> list[StreamSpec]:
+    if stream_id == mavlink.MAV_DATA_STREAM_ALL:
+        return [s for s in STREAMS if s.groups]
+    return [s for s in STREAMS if stream_id in s.groups]
+
+
+@dataclass
+class _StreamState:
+    spec: StreamSpec
+    override_us: int | None = None  # None: default period; -1: off; >0: interval
+    next_due_ns: int = 0
+    last_version: int = 0
+    due_version: int | None = None  # slot version when the stream fell due
+    sent: int = 0
+    skipped: int = 0
+
+
+@dataclass
+class StreamStats:
+    sent: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
+
+
+class StreamScheduler:
+    """Decides, for one link, which stream goes out when. Used by the link's sender only."""
+
+    def __init__(self, core: BridgeCore, specs: Iterable[StreamSpec] = STREAMS) -> None:
+        self.core = core
+        self._states = [_StreamState(s) for s in specs]
+        self._by_id = {st.spec.msg_id: st for st in self._states}
+        self.latencies_us: list[int] = []  # sample arrival -> message built, recent
+        self.awaited: tuple[WaitableSlot[Any], int] | None = None
+        self._periods_ms: list[float | None] = []
+        self._periods_at_ns = 0
+        self._lat_n = 0
+
+    # ---------------------------------------------------------------- configuration
+    def set_interval(self, msg_id: int, interval_us: int, now_ns: int) -> bool:
+        """SET_MESSAGE_INTERVAL semantics: -1 off, 0 default, >0 interval in us."""
+        spec = stream_for(msg_id)
+        if spec is None:
+            return False
+        st = self._by_id[spec.msg_id]
+        if interval_us == 0:
+            st.override_us = None
+        elif interval_us < 0:
+            st.override_us = -1
+        else:
+            st.override_us = max(MIN_INTERVAL_US, int(interval_us))
+        st.next_due_ns = now_ns
+        self._periods_at_ns = 0  # recompute at the next service
+        return True
+
+    def interval_us(self, msg_id: int) -> int:
+        """Current interval (us) for MESSAGE_INTERVAL: -1 off, 0 not a stream."""
+        spec = stream_for(msg_id)
+        if spec is None:
+            return 0
+        ms = self._period_ms(self._by_id[spec.msg_id])
+        return -1 if ms is None else int(ms * 1000)
+
+    def _period_ms(self, st: _StreamState) -> float | None:
+        if st.override_us is not None:
+            return None if st.override_us < 0 else st.override_us / 1000.0
+        ms = st.spec.default_ms(self.core)
+        return float(ms) if ms else None
+
+    def stats(self) -> StreamStats:
+        return StreamStats({s.spec.name: s.sent for s in self._states},
+                           {s.spec.name: s.skipped for s in self._states})
+
+    # ---------------------------------------------------------------- running
+    def service(self, now_ns: int, link: LinkSide, emit: Callable[[list[Msg]], None]) -> int:
+        """Send what is due and fresh; returns how long (ns) the sender may sleep.
+
+        When a due stream waits for a sample from a waitable slot, `awaited` says which slot
+        and which version, so the sender can sleep on that slot and wake with the sample
+        instead of polling.
+        """
+        wait_ns = IDLE_NS
+        state = self.core.ctx.state
+        self.awaited = None
+        awaited_slots: set[int] = set()
+        if not self._periods_at_ns or now_ns - self._periods_at_ns >= PERIOD_REFRESH_NS:
+            # periods come from parameters: re-read them a few times a second, not every wake-up
+            periods = [self._period_ms(st) for st in self._states]
+            for st, old, new in zip(self._states, self._periods_ms or periods, periods, strict=True):
+                if new is not None and new != old and st.next_due_ns:
+                    # a shorter period applies now, not after the rest of the old one
+                    st.next_due_ns = min(st.next_due_ns, now_ns + int(new * 1e6))
+            self._periods_ms = periods
+            self._periods_at_ns = now_ns
+        for st, period_ms in zip(self._states, self._periods_ms, strict=True):
+            if period_ms is None:
+                continue
+            period_ns = int(period_ms * 1e6)
+            if st.next_due_ns == 0:
+                st.next_due_ns = now_ns
+            if now_ns < st.next_due_ns:
+                wait_ns = min(wait_ns, st.next_due_ns - now_ns)
+                continue
+            source = st.spec.source
+            value: Any = None
+            if source is not None:
+                slot = getattr(state, source)
+                value, version, _stamp = slot.read_versioned()
+                if value is None:  # no data ever (no such device): look again next period
+                    self._advance(st, period_ns, now_ns)
+                    wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
+                    continue
+                if st.due_version is None:
+                    # wait for the first sample *after* falling due, not the newest one seen:
+                    # that one is on average half a data period old already
+                    st.due_version = version if st.sent else min(version, st.last_version)
+                if version <= st.due_version:
+                    if now_ns - st.next_due_ns >= period_ns:  # no fresh sample in a period
+                        st.skipped += 1
+                        link.counters.stale_skips += 1
+                        st.due_version = None
+                        self._advance(st, period_ns, now_ns)
+                        wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
+                    else:
+                        awaited_slots.add(id(slot))
+                        if isinstance(slot, WaitableSlot) and self.awaited is None:
+                            self.awaited = (slot, version)
+                            wait_ns = min(wait_ns, AWAIT_NS)
+                        else:
+                            wait_ns = min(wait_ns, POLL_NS)
+                    continue
+                st.last_version = version
+                st.due_version = None
+            msgs = st.spec.build(self.core, value, link)
+            if msgs:
+                emit(msgs)
+                st.sent += 1
+                if value is not None and hasattr(value, "t_ns"):
+                    self._note_latency(self.core.now_real_ns() - int(value.t_ns))
+            self._advance(st, period_ns, now_ns)
+            wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
+        if len(awaited_slots) > 1:  # sleeping on one slot: look at the others often
+            wait_ns = min(wait_ns, POLL_NS)
+        return wait_ns
+
+    @staticmethod
+    def _advance(st: _StreamState, period_ns: int, now_ns: int) -> None:
+        st.next_due_ns += period_ns
+        if st.next_due_ns <= now_ns - period_ns:  # far behind (a pause): start again from now
+            st.next_due_ns = now_ns + period_ns
+
+    def _note_latency(self, latency_ns: int) -> None:
+        us = max(0, latency_ns // 1000)
+        if len(self.latencies_us) < LATENCY_RING:
+            self.latencies_us.append(us)
+        else:
+            self.latencies_us[self._lat_n % LATENCY_RING] = us
+        self._lat_n += 1

@@ -1,0 +1,291 @@
+"""State-to-MAVLink scaling, health bits and the stream scheduler, without threads or sockets."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from companion.clock import Clock
+from companion.params import ParamRegistry
+from companion.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
+from gcs_bridge import status, streams, telemetry
+from gcs_bridge.core import BRIDGE_PARAMS, UINT16_MAX, BridgeCore
+from gcs_bridge.dialect import Identity, mavlink
+
+ORIGIN = (43.7, 10.4, 50.0)
+
+
+def make_core(*threads: ManagedThread, identity: Identity = Identity.PX4) -> BridgeCore:
+    ctx = RuntimeContext(clock=Clock(), params=ParamRegistry(), vehicle_id=7)
+    ctx.params.declare_all(BRIDGE_PARAMS)
+    manager = ThreadManager(ctx, list(threads))
+    return BridgeCore(ctx, manager, identity)
+
+
+def est(pos: tuple[float, float, float] = (0.0, 0.0, 0.0), yaw: float = 0.0,
+        origin: tuple[float, float, float] | None = ORIGIN, t_ns: int = 0) -> EstimatorState:
+    o = origin or (None, None, None)
+    return EstimatorState(t_ns, (1.0, 0.0, 0.0, 0.0), 0.1, -0.05, yaw, pos, (10.0, -2.0, 1.0),
+                          (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), o[0], o[1], o[2],
+                          rates_rad_s=(0.01, 0.02, 0.03), aligned=True)
+
+
+def packs(msgs: list[Any]) -> list[Any]:
+    """Every builder output must pack (field ranges) and parse back."""
+    out = []
+    for m in msgs:
+        frame = m.pack(mavlink.MAVLink(None, 7, 1))
+        out.append(mavlink.MAVLink(None, 0, 0).parse_char(frame))
+    return out
+
+
+# ------------------------------------------------------------------------------------ scaling
+def test_global_position_is_scaled_from_the_estimate() -> None:
+    core = make_core()
+    (gp,) = packs(telemetry.global_position_int(core, est((1000.0, 0.0, -100.0), yaw=-math.pi / 2)))
+    assert gp.lat == pytest.approx((ORIGIN[0] + 1000.0 / 111_132.0) * 1e7, abs=2_000)
+    assert gp.lon == pytest.approx(ORIGIN[1] * 1e7, abs=10)
+    # the tangent plane leaves the ellipsoid: 1 km north is ~8 cm higher above it
+    assert gp.alt == pytest.approx((ORIGIN[2] + 100.0 + 0.0785) * 1000, abs=5)
+    assert gp.relative_alt == 100_000
+    assert (gp.vx, gp.vy, gp.vz) == (1000, -200, 100)
+    assert gp.hdg == 27000
+    assert telemetry.global_position_int(core, est(origin=None)) == []
+
+
+def test_attitude_local_position_vfr_and_home() -> None:
+    core = make_core()
+    e = est((5.0, 6.0, -7.0))
+    (att,) = packs(telemetry.attitude(core, e))
+    assert (att.roll, att.pitch) == (pytest.approx(0.1), pytest.approx(-0.05))
+    assert att.yawspeed == pytest.approx(0.03)
+    (q,) = packs(telemetry.attitude_quaternion(core, e))
+    assert (q.q1, q.q2) == (1.0, 0.0)
+    (lp,) = packs(telemetry.local_position_ned(core, e))
+    assert (lp.x, lp.y, lp.z, lp.vz) == (5.0, 6.0, -7.0, 1.0)
+    (hud,) = packs(telemetry.vfr_hud(core, e, 0.42))
+    assert hud.throttle == 42 and hud.groundspeed == pytest.approx(math.hypot(10, 2))
+    assert hud.climb == pytest.approx(-1.0)
+    assert telemetry.home_position(core) == []  # no estimate, no configured home
+    core.ctx.home_lla = (1.0, 2.0, 3.0)
+    (home,) = packs(telemetry.home_position(core))
+    assert (home.latitude, home.longitude, home.altitude) == (10_000_000, 20_000_000, 3000)
+    core.ctx.state.estimator.write(e)  # the estimator's origin wins
+    (home,) = packs(telemetry.home_position(core))
+    assert home.latitude == round(ORIGIN[0] * 1e7) and home.altitude == 50_000
+
+
+def test_gps_unknowns_use_the_unknown_markers() -> None:
+    core = make_core()
+    fix = GpsFix(0, None, None, None, None, 0, None)
+    msgs = packs(telemetry.gps_raw_int(core, fix))
+    assert len(msgs) == 1
+    g = msgs[0]
+    assert g.fix_type == mavlink.GPS_FIX_TYPE_NO_FIX
+    assert (g.eph, g.epv, g.vel, g.cog, g.satellites_visible) == (UINT16_MAX,) * 4 + (255,)
+    fix = GpsFix(0, 1.0, 43.7, 10.4, 40.0, 2, 11, hdop=0.8, pdop=1.5, vdop=1.2, tdop=0.7,
+                 speed_m_s=21.5, course_deg=359.996, alt_std_m=3.0, h_std_m=1.25)
+    g, pdop, tdop = packs(telemetry.gps_raw_int(core, fix))
+    assert g.fix_type == mavlink.GPS_FIX_TYPE_DGPS
+    assert (g.lat, g.alt, g.eph, g.epv, g.vel, g.satellites_visible) == (437_000_000, 40_000, 80, 120,
+                                                                         2150, 11)
+    assert g.cog == 0  # 359.996 deg rounds to 36000 cdeg, which is 0
+    assert (g.h_acc, g.v_acc) == (1250, 3000)
+    assert (pdop.name, pdop.value, tdop.name) == ("GPS_PDOP", pytest.approx(1.5), "GPS_TDOP")
+
+
+def test_imu_messages() -> None:
+    core = make_core()
+    imu = ImuSample(0, 1, (0.1, -0.2, 0.3), (1.0, 2.0, -9.80665))
+    (h,) = packs(telemetry.highres_imu(core, imu, None))
+    assert (h.xgyro, h.zacc) == (pytest.approx(0.1), pytest.approx(-9.80665))
+    assert h.fields_updated == 0x3F and math.isnan(h.temperature)
+    slow = ImuSlowSample(0, (0, 0, 0), (0, 0, 0), 0.0, 0)
+    (h,) = packs(telemetry.highres_imu(core, imu, slow))
+    assert h.fields_updated & (1 << 12) and h.temperature == 0.0
+    (s,) = packs(telemetry.scaled_imu(core, imu, slow))
+    assert (s.zacc, s.xgyro, s.temperature) == (-1000, 100, 1)  # 0 degC is sent as 0.01
+    (s,) = packs(telemetry.scaled_imu(core, imu, None))
+    assert s.temperature == 0
+
+
+def test_servo_board_messages_and_batteries() -> None:
+    core = make_core()
+    servo = ServoState(0, 1, (1500,) * 8, (1100, 1900, 0, 0, 0, 0, 0, 0), True, False, True,
+                       100, 85)
+    (rc,) = packs(telemetry.rc_channels(core, servo))
+    assert rc.chancount == 8 and rc.chan8_raw == 1500 and rc.chan9_raw == UINT16_MAX
+    assert rc.rssi == 0  # failsafe: no radio
+    (out,) = packs(telemetry.servo_output_raw(core, servo))
+    assert (out.servo1_raw, out.servo2_raw, out.servo3_raw) == (1100, 1900, 0)
+    b1, b2 = packs(telemetry.battery_status(core, servo))
+    assert (b1.id, b1.voltages[0], b1.battery_remaining) == (0, 8400, 100)
+    assert b1.battery_function == mavlink.MAV_BATTERY_FUNCTION_AVIONICS
+    assert (b2.id, b2.voltages[0], b2.battery_remaining) == (1, 4760, 25)
+    assert b2.charge_state == mavlink.MAV_BATTERY_CHARGE_STATE_OK
+    core.ctx.params.set("MAV_B_LOW_PCT", 30)
+    _, b2 = packs(telemetry.battery_status(core, servo))
+    assert b2.charge_state == mavlink.MAV_BATTERY_CHARGE_STATE_LOW
+    assert telemetry.battery_percent(70, 80) == 0 and telemetry.battery_percent(120, 80) == 100
+
+
+def test_extreme_values_still_pack() -> None:
+    core = make_core()
+    e = EstimatorState(0, (1.0, 0.0, 0.0, 0.0), 0.0, 0.0, float("nan"), (1e12, -1e12, 1e9),
+                       (1e9, float("inf"), -1e9), (0, 0, 0), (0, 0, 0), 89.9, 179.9, 1e7)
+    for build in (telemetry.global_position_int, telemetry.local_position_ned, telemetry.attitude):
+        packs(build(core, e))
+    core.ctx.state.estimator.write(e)
+    packs(telemetry.home_position(core))
+    packs(telemetry.vfr_hud(core, e, float("nan")))
+    fix = GpsFix(0, 0.0, 95.0, 400.0, 1e12, 7, 10_000, hdop=1e9, speed_m_s=-5.0, h_std_m=1e12)
+    packs(telemetry.gps_raw_int(core, fix))
+    servo = ServoState(0, 0, (70000, -5) + (1500,) * 20, (99999,) * 20, False, False, False, 255, 0)
+    packs(telemetry.rc_channels(core, servo) + telemetry.servo_output_raw(core, servo)
+          + telemetry.battery_status(core, servo))
+
+
+# ------------------------------------------------------------------------------------ identity
+class Idle(ManagedThread):
+    pass
+
+
+def test_heartbeat_identity_and_boot_state() -> None:
+    core = make_core(Idle("imu", thread_id=1))
+    (hb,) = packs([status.heartbeat(core)])
+    assert (hb.type, hb.autopilot, hb.system_status) == (
+        mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_PX4, mavlink.MAV_STATE_BOOT)
+    assert hb.custom_mode == 1 << 16 and hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    apm = make_core(identity=Identity.ARDUPILOT)
+    assert status.heartbeat(apm).autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    caps = status.autopilot_version(core).capabilities
+    assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    assert not caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    assert status.autopilot_version(apm).capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+
+
+def test_sensor_bits_follow_the_threads() -> None:
+    core = make_core(Idle("imu", thread_id=1), Idle("gps", thread_id=2), Idle("servo", thread_id=3))
+    core.ctx.params.set("GPS_ENABLE", 0)
+    present, enabled, healthy = status.sensor_bits(core)
+    gps = mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    gyro = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    batt = mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+    assert present & gps and not enabled & gps and enabled & gyro and present & batt
+    assert healthy == 0  # nothing has run yet
+    assert not present & mavlink.MAV_SYS_STATUS_AHRS
+
+
+def test_thread_status_names_fit_ten_characters() -> None:
+    t = Idle("a-thread-with-a-long-name", thread_id=42, param_prefix="LONG")
+    core = make_core(t)
+    msgs = packs(status.thread_status_messages(core, t.status()))
+    assert [m.name for m in msgs] == ["T42_LEDS", "T42_RST", "T42_STEPUS", "T42_WDGMS", "T42_MSGMS"]
+    assert all(len(m.name) <= 10 for m in msgs)
+    assert msgs[3].value == 500
+
+
+# ------------------------------------------------------------------------------------ scheduler
+@dataclass
+class FakeLink:
+    index: int = 0
+    counters: status.LinkCounters = field(default_factory=status.LinkCounters)
+    sent: list[tuple[int, str]] = field(default_factory=list)
+    now_ns: int = 0
+
+    def next_thread_status(self) -> Any:
+        return None
+
+    def emit(self, msgs: list[Any]) -> None:
+        self.sent += [(self.now_ns, m.get_type()) for m in msgs]
+
+
+def only(specs_ids: list[int]) -> list[streams.StreamSpec]:
+    return [streams.STREAMS_BY_ID[i] for i in specs_ids]
+
+
+def test_data_stream_waits_for_a_sample_newer_than_its_due_time() -> None:
+    core = make_core()
+    sched = streams.StreamScheduler(core, only([mavlink.MAVLINK_MSG_ID_ATTITUDE]))
+    link = FakeLink()
+    ms = 1_000_000
+    assert sched.service(0, link, link.emit) == streams.IDLE_NS  # no data ever: nothing due
+    core.ctx.state.estimator.write(est())
+    sched.set_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000, 0)  # 10 Hz
+    sched.service(0, link, link.emit)
+    assert len(link.sent) == 1  # first one at once
+    wait = sched.service(100 * ms, link, link.emit)  # due, but the sample is old
+    assert len(link.sent) == 1 and wait == streams.AWAIT_NS
+    assert sched.awaited is not None and sched.awaited[0] is core.ctx.state.estimator
+    core.ctx.state.estimator.write(est())
+    link.now_ns = 103 * ms
+    wait = sched.service(103 * ms, link, link.emit)
+    assert link.sent[-1] == (103 * ms, "ATTITUDE")
+    assert wait == 97 * ms  # next due keeps the 100 ms grid (200 ms), not 103 + 100
+    # a period without any new sample is skipped, not filled with stale data
+    sched.service(200 * ms, link, link.emit)
+    sched.service(300 * ms, link, link.emit)
+    assert len(link.sent) == 2 and link.counters.stale_skips == 1
+
+
+def test_intervals_override_disable_and_default() -> None:
+    core = make_core()
+    hb = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+    sched = streams.StreamScheduler(core, only([hb]))
+    link = FakeLink()
+    t = 0
+    while t <= 3_000_000_000:  # 3 s of heartbeats at the default 1 Hz
+        sched.service(t, link, link.emit)
+        t += 10_000_000
+    assert len(link.sent) == 4
+    assert sched.interval_us(hb) == 1_000_000
+    assert sched.set_interval(hb, 250_000, t)
+    n = len(link.sent)
+    for _ in range(100):
+        sched.service(t, link, link.emit)
+        t += 10_000_000
+    assert len(link.sent) - n == 4
+    assert sched.set_interval(hb, -1, t) and sched.interval_us(hb) == -1
+    n = len(link.sent)
+    for _ in range(100):
+        sched.service(t, link, link.emit)
+        t += 10_000_000
+    assert len(link.sent) == n
+    assert sched.set_interval(hb, 0, t) and sched.interval_us(hb) == 1_000_000
+    assert sched.set_interval(hb, 10, t) and sched.interval_us(hb) == streams.MIN_INTERVAL_US
+    assert not sched.set_interval(mavlink.MAVLINK_MSG_ID_MISSION_ITEM, 1000, t)
+
+
+def test_stream_periods_come_from_the_source_threads() -> None:
+    core = make_core(Idle("estimator", thread_id=4, message_ms=250))
+    sched = streams.StreamScheduler(core)
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 250_000
+    core.ctx.params.set("ESTIMA_MSG_MS", 40)
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) == 40_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT) == 1_000_000  # no GPS thread
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SYS_STATUS) == 2_000_000  # MGR_MSTAT_MS
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SCALED_IMU) == -1  # off by default
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT) == 1_000_000  # MGR_STATUS_MS
+    groups = {s.msg_id for s in streams.streams_in_group(mavlink.MAV_DATA_STREAM_POSITION)}
+    assert groups == {mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                      mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED}
+
+
+def test_a_shorter_message_period_applies_at_once() -> None:
+    core = make_core(Idle("estimator", thread_id=4, message_ms=1000))
+    sched = streams.StreamScheduler(core, only([mavlink.MAVLINK_MSG_ID_ATTITUDE]))
+    link = FakeLink()
+    ms = 1_000_000
+    core.ctx.state.estimator.write(est())
+    sched.service(0, link, link.emit)
+    assert len(link.sent) == 1
+    core.ctx.params.set("ESTIMA_MSG_MS", 100)
+    sched.service(150 * ms, link, link.emit)  # periods re-read: next one due at 250 ms
+    sched.service(250 * ms, link, link.emit)  # due: waits for the next sample
+    core.ctx.state.estimator.write(est())
+    sched.service(255 * ms, link, link.emit)
+    assert len(link.sent) == 2  # not after the rest of the old 1 s period
