@@ -92,9 +92,14 @@ def print_summary(summary: dict[str, Any], as_json: bool) -> None:
         print(f"{t['name']:<12}{t['cycles']:>9}{t['rate_hz']:>9.2f}{t['restarts']:>9}"
               f"{t['stalls']:>7}{t['mean_step_us']:>9.1f}{t['missed_deadlines']:>7}"
               f"{t['log_dropped']:>9}")
-    for key in ("messages", "simulator"):
-        if key in summary:
-            print(f"{key}: {summary[key]}")
+    for link in summary.get("messages", []):
+        counts = ", ".join(f"{k}={v}" for k, v in link.items()
+                           if k != "link" and isinstance(v, int | float) and v)
+        print(f"link {link.get('link') or 'mavlink ' + str(link.get('endpoint', '?'))}: {counts}")
+    if "simulator" in summary:
+        sim = summary["simulator"]
+        print(f"simulator: {sim.get('sim_time_s')} s flown, real-time factor "
+              f"{sim.get('real_time_factor')}, stop: {sim.get('stop')}")
     files = summary.get("files", {})
     if files:
         total = sum(files.values())

@@ -144,6 +144,14 @@ class Runtime:
             self.bridges.append(LegacyAdapter(
                 self.ctx, self.manager, dest=cfg.legacy.dest, listen_port=cfg.legacy.listen,
                 allow=list(cfg.legacy.allow), bind_host=cfg.legacy.bind))
+        if (cfg.rerun.enabled or cfg.rerun.save) and not dry:
+            from companion.liveview import LiveView
+
+            self.bridges.append(LiveView(self.ctx, self.manager, spawn=cfg.rerun.enabled,
+                                         save_path=Path(cfg.rerun.save) if cfg.rerun.save else None))
+        self.events = self.manager.subscribe_events(capacity=10_000)
+        self.event_log: list[dict[str, Any]] = []
+        self.manager.on_tick.append(self._collect_events)
         # every parameter is declared now: load the persisted values over the defaults
         self.param_issues: list[FileIssue] = (
             [] if dry else params.attach_file(Path(cfg.params.file)))
@@ -184,8 +192,14 @@ class Runtime:
             finally:
                 self.shutdown()
 
+    def _collect_events(self) -> None:
+        for e in self.events.drain():
+            self.event_log.append({"t_s": e.t_ns / 1e9, "kind": e.kind.value, "thread": e.thread,
+                                   "detail": e.detail, "severity": e.severity})
+
     def shutdown(self) -> None:
         self.manager.shutdown()
+        self._collect_events()
         for bridge in self.bridges:
             close = getattr(bridge, "close", None)
             if close is not None:
@@ -196,6 +210,11 @@ class Runtime:
         if self.logs is not None:
             self.logs.close()
             self.logs = None
+        if not self.opts.dry and self._started:
+            try:
+                write_json_atomic(self.flight_dir / "summary.json", self.summary())
+            except OSError as exc:
+                log.error("cannot write summary.json: %s", exc)
 
     @contextlib.contextmanager
     def _signals(self, enabled: bool) -> Iterator[None]:
@@ -222,12 +241,18 @@ class Runtime:
             "threads": [
                 {"name": s.name, "cycles": s.cycles, "restarts": s.restarts, "stalls": s.stalls,
                  "failed": s.failed, "rate_hz": round(s.measured_rate_hz, 2),
-                 "mean_step_us": round(s.mean_step_us, 1), "missed_deadlines": s.missed_deadlines,
+                 "mean_step_us": round(s.mean_step_us, 1),
+                 "worst_step_us": round(s.worst_step_us, 1), "overruns": s.overruns,
+                 "crashes": s.crashes, "interrupted": s.interrupted, "abandoned": s.abandoned,
+                 "missed_deadlines": s.missed_deadlines,
                  "log_dropped": s.log_dropped,
                  **({"counters": t.counters()} if hasattr(t, "counters") else {})}
                 for s, t in zip(self.manager.thread_status(), self.manager.threads, strict=True)
             ],
             "files": {p.name: p.stat().st_size for p in files},
+            "events": list(self.event_log),
+            "messages": [s for b in self.bridges if hasattr(b, "stats")
+                         for s in (b.stats() if isinstance(b.stats(), list) else [b.stats()])],
         }
 
 
@@ -263,3 +288,9 @@ def every(period_s: float, fn: Callable[[], None]) -> Callable[[], None]:
 
 def dump_json(obj: Any) -> str:
     return json.dumps(obj, indent=2, sort_keys=True, default=str)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    from companion.params import atomic_write_text
+
+    atomic_write_text(path, dump_json(obj) + "\n")

@@ -174,6 +174,8 @@ class LegacyAdapter:
         except OSError:
             self.rx.stop_event.wait(timeout_s)  # socket closed during shutdown
             return
+        if self.rx.stop_requested:
+            return  # the wake-up datagram sent to unblock this read
         self.handle_datagram(data, addr)
 
     def handle_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
@@ -368,6 +370,10 @@ class LegacyAdapter:
             s.message_ms,
             s.name[:16],
         )
+
+    def stats(self) -> dict[str, Any]:
+        return {"link": f"legacy udp {self.listen_addr[0]}:{self.listen_addr[1]} -> "
+                        f"{self.dest[0]}:{self.dest[1]}", **vars(self.counters)}
 
     def close(self) -> None:
         try:

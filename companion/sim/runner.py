@@ -17,7 +17,7 @@ from typing import Any
 
 from companion.clock import Clock
 from companion.config import Config
-from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+from companion.runtime import Runtime, RuntimeOptions, new_flight_dir, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +145,10 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
     summary["simulator"] = stats
     summary["host_seconds"] = round(host_s, 2)
     summary["clock_scale"] = clock.scale
+    try:
+        write_json_atomic(flight_dir / "summary.json", summary)
+    except OSError as exc:
+        log.error("cannot write summary.json: %s", exc)
     return summary
 
 

@@ -1,0 +1,23 @@
+"""Rerun views of a flight: live while it flies (`--rerun`), or replayed from its logs.
+
+`LiveView` adds a low-priority managed thread that samples the vehicle's slots into rerun;
+`replay_flight` sends a recorded flight directory, on its log timestamps. Both use the entity
+paths in `companion.liveview.entities`. User documentation: docs/report.md.
+"""
+
+from __future__ import annotations
+
+from companion.liveview.replay import ReplayResult, replay_flight, replay_into
+from companion.liveview.sink import Recording, ViewerError, open_recording
+from companion.liveview.thread import LiveView, LiveViewThread
+
+__all__ = [
+    "LiveView",
+    "LiveViewThread",
+    "Recording",
+    "ReplayResult",
+    "ViewerError",
+    "open_recording",
+    "replay_flight",
+    "replay_into",
+]
