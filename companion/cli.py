@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import logging
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -119,17 +119,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.devices.gps.port = args.gps
     if args.servo:
         cfg.devices.servo.port = args.servo
-    rt = Runtime(cfg, RuntimeOptions())
-    for issue in rt.param_issues:
-        print(f"warning: {issue} (default used)", file=sys.stderr)
-    if sys.stderr.isatty() and args.verbose == 0:
-        rt.manager.on_tick.append(every(1.0, lambda: print(
-            "\r" + status_line(rt.manager)[:200], end="", file=sys.stderr, flush=True)))
-    rt.run(args.duration)
-    if sys.stderr.isatty():
-        print(file=sys.stderr)
-    print_summary(rt.summary(), args.json)
-    return 0
+    while True:
+        rt = Runtime(cfg, RuntimeOptions())
+        for issue in rt.param_issues:
+            print(f"warning: {issue} (default used)", file=sys.stderr)
+        if sys.stderr.isatty() and args.verbose == 0:
+            mgr = rt.manager
+            mgr.on_tick.append(every(1.0, lambda: print(
+                "\r" + status_line(mgr)[:200], end="", file=sys.stderr, flush=True)))
+        reason = rt.run(args.duration)
+        if sys.stderr.isatty():
+            print(file=sys.stderr)
+        print_summary(rt.summary(), args.json)
+        if reason != "reboot":
+            return 0
+        print("reboot requested: restarting the runtime", file=sys.stderr)
 
 
 def cmd_params(args: argparse.Namespace) -> int:

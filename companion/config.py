@@ -68,6 +68,7 @@ class MavlinkConfig:
     endpoints: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"])
     key_file: str = ""  # MAVLink 2 signing key ("companion keys new"); empty = no signing
     allow_unsigned_reads: bool = True
+    identity: str = "px4"  # "px4" (bytewise integer parameters) or "ardupilot" (C cast)
 
 
 @dataclass
@@ -198,6 +199,7 @@ file = "params.parm"
 endpoints = ["udpout:127.0.0.1:14550"]
 key_file = ""
 allow_unsigned_reads = true
+identity = "px4"
 
 [legacy]
 dest = "255.255.255.255:5501"

@@ -137,7 +137,9 @@ class Runtime:
             self.bridges.append(MavlinkBridge(
                 self.ctx, self.manager, endpoints=list(cfg.mavlink.endpoints),
                 key_file=cfg.mavlink.key_file or None,
-                allow_unsigned_reads=cfg.mavlink.allow_unsigned_reads))
+                allow_unsigned_reads=cfg.mavlink.allow_unsigned_reads,
+                identity=cfg.mavlink.identity, logging_control=self._logging_control,
+                tlog=not dry))
         if self.opts.legacy and cfg.legacy.enabled:
             from legacy_protocol.adapter import LegacyAdapter
 
@@ -191,6 +193,13 @@ class Runtime:
                 return self.manager.run(duration_s)
             finally:
                 self.shutdown()
+
+    def _logging_control(self, start: bool) -> str | None:
+        """MAVLink start/stop logging: pause or resume the flight logs (None = done)."""
+        if self.logs is None:
+            return "logging is disabled in the configuration"
+        self.logs.set_paused(not start)
+        return None
 
     def _collect_events(self) -> None:
         for e in self.events.drain():

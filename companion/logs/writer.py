@@ -290,6 +290,8 @@ class ThreadLog:
         self.text = text
         self._sink = sink
         self._queue = service._queue
+        self._service = service
+        self.paused_records = 0
         self._capacity = service.capacity_records
         self._high_water = max(1, service.capacity_records // 2)
         self._wake = service._wake
@@ -375,6 +377,9 @@ class ThreadLog:
         packer = self._packers.get(index)
         if packer is None:
             raise ValueError(f"log {self.name!r}: format index {index} is not defined")
+        if self._service.paused:
+            self.paused_records += 1
+            return False
         if len(values) != packer.n_fields:
             raise ValueError(
                 f"log {self.name!r} index {index}: {len(values)} values for {packer.n_fields} fields"
@@ -398,6 +403,9 @@ class ThreadLog:
             raise ValueError(
                 f"log {self.name!r}: format index {index} is not defined as one 1-byte conversion"
             )
+        if self._service.paused:
+            self.paused_records += 1
+            return False
         payload = bytes(data)
         if len(payload) > MAX_BODY:
             raise ValueError(
@@ -446,6 +454,9 @@ class LogService:
         self._thread: threading.Thread | None = None
         self._closed = False
         self._close_timed_out = False
+        #: Data records are refused (not queued, counted per log) while paused: an operator's
+        #: "stop logging"; definitions and Begin/End markers still go through.
+        self.paused = False
 
     def __enter__(self) -> LogService:
         self.start()
@@ -483,6 +494,10 @@ class LogService:
             self._sinks.append(sink)
         self._wake.set()
         return thread_log
+
+    def set_paused(self, paused: bool) -> None:
+        self.paused = paused
+        log.info("logging %s", "paused" if paused else "resumed")
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Write everything queued, close all files, stop the writer thread (bounded wait)."""

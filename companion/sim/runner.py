@@ -127,17 +127,28 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             cfg.devices.gps.port = world.devices["gps"]
             cfg.devices.servo.port = world.devices["servo"]
             cfg.vehicle.home = ",".join(repr(float(v)) for v in world.devices["home"])
-            rt = Runtime(cfg, RuntimeOptions(
-                clock=clock, flight_dir=flight_dir,
-                extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))
-            if sim.gps_ashtech:
-                rt.ctx.params.set("GPS_PASHR", 1)
-            if on_runtime is not None:
-                on_runtime(rt)
-            rt.start()
-            world.go()
             t0 = time.monotonic()
-            rt.run(duration_s, handle_signals=handle_signals)
+            first = True
+            while True:
+                rt = Runtime(cfg, RuntimeOptions(
+                    clock=clock, flight_dir=flight_dir,
+                    extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))
+                if sim.gps_ashtech:
+                    rt.ctx.params.set("GPS_PASHR", 1)
+                if on_runtime is not None:
+                    on_runtime(rt)
+                rt.start()
+                if first:
+                    world.go()
+                    first = False
+                remaining = None
+                if duration_s:
+                    remaining = max(0.001, duration_s - (time.monotonic() - t0) * clock.scale)
+                reason = rt.run(remaining, handle_signals=handle_signals)
+                if reason != "reboot":
+                    break
+                # a reboot restarts the flight program; the world (the aircraft) flies on
+                log.warning("reboot requested: restarting the runtime")
             host_s = time.monotonic() - t0
         finally:
             stats = world.stop()
