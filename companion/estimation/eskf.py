@@ -44,7 +44,7 @@ from companion.estimation.quat import (
     FloatArray,
     quat_from_rotvec_f,
     quat_multiply_f,
-    quat_to_euler,
+    quat_to_euler_f,
     roll_pitch_from_accel,
     rotmat_f,
     wrap_pi,
@@ -536,7 +536,7 @@ class Eskf:
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
         q_then = past[2]
-        est_roll, est_pitch, est_yaw = (float(c) for c in quat_to_euler(np.array(q_then)))
+        est_roll, est_pitch, est_yaw = quat_to_euler_f(*q_then)
         if abs(est_pitch) > math.radians(75.0) or abs(pitch) > math.radians(75.0):
             return UpdateResult(False, "attitude_out_of_range")
         y = np.array((float(wrap_pi(roll - est_roll)), pitch - est_pitch))
@@ -632,7 +632,7 @@ class Eskf:
         v_std: FloatArray,
     ) -> None:
         """Turn the attitude about NED-down so the heading equals the GPS course."""
-        roll, pitch, yaw = (float(c) for c in quat_to_euler(np.array(self._q)))
+        roll, pitch, yaw = quat_to_euler_f(*self._q)
         delta = float(wrap_pi(course_rad - yaw))
         dq = quat_from_rotvec_f(0.0, 0.0, delta)
         self._q = quat_multiply_f(*dq, *self._q)
@@ -781,7 +781,7 @@ class Eskf:
 
     def state(self) -> EskfState:
         q = np.array(self._q)
-        roll, pitch, yaw = (float(c) for c in quat_to_euler(q))
+        roll, pitch, yaw = quat_to_euler_f(*self._q)
         diag = np.diagonal(self._p).copy()
         if not self._yaw_aligned:
             diag[IDX_YAW] = math.pi**2 / 3.0

@@ -223,3 +223,12 @@ def rotmat_f(w: float, x: float, y: float, z: float) -> FloatArray:
             (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
         )
     )
+
+
+def quat_to_euler_f(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """Scalar :func:`quat_to_euler` for one quaternion: the per-sample path must not pay numpy's
+    array overhead (about 30 us) for three angles."""
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw

@@ -37,6 +37,7 @@ STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_
 GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_s", "nis",
                "accepted", "latency_s"]
 IMU_PERIOD_S = 0.01
+UNKNOWN_STD = 1e3  # 1-sigma given to a component the receiver did not measure
 COUNTER_WRAP = 100
 
 
@@ -208,7 +209,10 @@ class EstimatorThread(ManagedThread):
         vstd = float(self.param("GPS_VSTD"))
         if fix.alt_std_m is not None and math.isfinite(fix.alt_std_m):
             vstd = max(vstd, fix.alt_std_m)
-        vel_std = float(self.param("GPS_VEL"))
+        vel_std_h = float(self.param("GPS_VEL"))
+        # NMEA without $PASHR,POS carries no vertical velocity: leave it unconstrained rather
+        # than claim the aircraft is level (0 m/s) while it climbs
+        vel_std = (vel_std_h, vel_std_h, vel_std_h if fix.vd_m_s is not None else UNKNOWN_STD)
         # age of the fix relative to the newest IMU sample: the receiver's own delay, the
         # transfer measured by the driver, and the time since hand-off
         device_s = fix.latency_s or 0.0

@@ -1,0 +1,248 @@
+"""Offline SITL evaluation: JSBSim truth, simulated devices, real decoders, the estimator as the
+thread runs it, and VQF / Madgwick on the same samples (a short, one-seed version of
+bench/estimation_sitl_bench.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.estimation.sitl_eval import (
+    EskfAsThread,
+    EskfOptions,
+    FlightSpec,
+    SitlRecording,
+    filter_errors,
+    outage_growth,
+    record_flight,
+    run_eskf,
+    run_madgwick,
+    run_vqf,
+    steady_turn_mask,
+)
+from companion.estimation.thread import EstimatorThread
+from companion.state import ImuSample, VehicleState
+from companion.sync import MessageQueue
+from companion.watchdog.thread import RuntimeContext
+
+WARMUP_S = 30.0
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "estimation_sitl_bench.py"
+
+
+def rms_deg(x: np.ndarray) -> float:
+    return math.degrees(float(np.sqrt(np.mean(np.square(x)))))
+
+
+@pytest.fixture(scope="module")
+def turns() -> SitlRecording:
+    """90 s of the turns scenario (8 s level, 20 s at 30 deg bank, 8 s level, 20 s at -30)."""
+    return record_flight(FlightSpec(aircraft="c172p", scenario="turns", seed=7, duration_s=90.0))
+
+
+def test_recording_has_every_sample_and_fix(turns: SitlRecording) -> None:
+    assert turns.trim_method
+    assert all(s is not None for s in turns.imu), "the IMU decoder lost a frame"
+    # 10 Hz fixes from 0.1 s, each handed off 50 ms late (the last one is still on its way)
+    assert len(turns.gps) == 899 and len(turns.gps_error_ned_m) == 900
+    fix_ticks = sorted(turns.gps)
+    assert fix_ticks[0] == 14 and np.all(np.diff(fix_ticks) == 10)
+    first = turns.gps[fix_ticks[0]]
+    assert first.latency_s == 0.0 and first.hdop == pytest.approx(0.9)
+    assert len(turns.horizon) == 900
+    # the GPS error is realistic: about a metre, not zero and not tens of metres
+    gps_h = np.linalg.norm(turns.gps_error_ned_m[:, :2], axis=1)
+    assert 0.3 < float(np.sqrt(np.mean(gps_h**2))) < 3.0
+    # the pilot really flew steady 30 deg turns
+    turn = steady_turn_mask(turns)
+    assert 0.25 < turn.mean() < 0.6
+    assert 25.0 < math.degrees(float(np.abs(turns.euler_true_rad[turn, 0]).mean())) < 35.0
+
+
+def test_project_estimator_beats_imu_only_filters_in_turns(turns: SitlRecording) -> None:
+    scored = turns.t_s >= WARMUP_S
+    turn = steady_turn_mask(turns) & scored
+    assert turn.sum() > 2000
+    run = run_eskf(turns)
+    ours = filter_errors(turns, run.quat, run=run)
+    vqf = filter_errors(turns, run_vqf(turns), zup=True)
+    madgwick = filter_errors(turns, run_madgwick(turns), zup=True)
+
+    ours_turn = rms_deg(ours.inclination_rad[turn])
+    vqf_turn = rms_deg(vqf.inclination_rad[turn])
+    madgwick_turn = rms_deg(madgwick.inclination_rad[turn])
+    # IMU-only filters take the turn's specific force for gravity: they slide towards wings
+    # level, so their error approaches the 30 deg bank
+    assert vqf_turn > 15.0 and madgwick_turn > 15.0
+    assert ours_turn < 0.1 * min(vqf_turn, madgwick_turn)
+    # loose absolute bounds on the estimator as the thread runs it today
+    assert rms_deg(ours.inclination_rad[scored]) < 2.0
+    assert ours_turn < 2.0
+    assert ours.heading_rad is not None and ours.vel_m_s is not None and ours.hpos_m is not None
+    assert rms_deg(ours.heading_rad[scored]) < 3.0
+    assert float(np.sqrt(np.mean(ours.vel_m_s[scored] ** 2))) < 1.0
+    assert float(np.sqrt(np.mean(ours.hpos_m[scored] ** 2))) < 3.0
+    # numerically healthy all the way
+    assert run.start_tick == 99  # one second of IMU averaging, a fix already there
+    assert run.exceptions == 0 and run.non_finite == 0 and ours.non_finite == 0
+    assert run.pd_checks > 8000 and run.pd_failures == 0
+    assert run.faults == 0, run.fault_reasons
+    assert run.gps_accepted > 850
+    step = run.step_us[np.isfinite(run.step_us)]
+    assert step.size == turns.ticks - 100 and float(np.median(step)) > 0.0
+
+
+def test_not_fusing_a_missing_vertical_velocity_meets_the_accuracy_targets(
+    turns: SitlRecording,
+) -> None:
+    """NMEA without PASHR,POS has no vertical velocity; the thread fuses 0 in its place."""
+    assert all(fix.vd_m_s is None for fix in turns.gps.values())
+    scored = turns.t_s >= WARMUP_S
+    turn = steady_turn_mask(turns) & scored
+    thread_run = run_eskf(turns)
+    as_thread = filter_errors(turns, thread_run.quat, run=thread_run)
+    fixed_run = run_eskf(turns, EskfOptions(missing_vd_std_m_s=100.0))
+    fixed = filter_errors(turns, fixed_run.quat, run=fixed_run)
+    assert fixed.vel_m_s is not None and as_thread.vel_m_s is not None
+    assert rms_deg(fixed.inclination_rad[scored]) < 0.5
+    assert rms_deg(fixed.inclination_rad[turn]) < 0.5
+    assert math.degrees(float(np.max(fixed.inclination_rad[scored]))) < 2.0
+    assert float(np.sqrt(np.mean(fixed.vel_m_s[scored] ** 2))) < 0.15
+    assert rms_deg(fixed.inclination_rad[scored]) < rms_deg(as_thread.inclination_rad[scored])
+    assert fixed_run.faults == 0
+
+
+class _WatchedQueue(MessageQueue[ImuSample]):
+    """The IMU stream, telling the test when the thread's initial phase has emptied it."""
+
+    def __init__(self) -> None:
+        super().__init__(512, drop_oldest=True)
+        self.drained = threading.Event()
+
+    def drain(self) -> list[ImuSample]:
+        out = super().drain()
+        self.drained.set()
+        return out
+
+
+def test_replica_matches_the_estimator_thread_sample_by_sample(turns: SitlRecording) -> None:
+    """EskfAsThread must stay the thread: same initial phase, GPS and horizon handling."""
+    ticks = 2500
+    short = SitlRecording(**{**vars(turns), "t_s": turns.t_s[:ticks]})
+    run = run_eskf(short, EskfOptions(horizon=True))
+    init = run.start_tick
+    assert init == 99 and run.horizon_used > 200
+
+    queue = _WatchedQueue()
+    thread = EstimatorThread()
+    thread.ctx = RuntimeContext(state=VehicleState(imu_stream=queue), home_lla=turns.home_lla)
+    thread.ctx.params.declare_all(thread.base_params() + thread.declare_params())
+    init_fix = turns.gps[max(k for k in turns.gps if k <= init)]
+    thread.ctx.state.gps.write(init_fix)
+    result: list[bool] = []
+    worker = threading.Thread(target=lambda: result.append(thread.prologue()), daemon=True)
+    worker.start()
+    try:
+        assert queue.drained.wait(10.0), "the initial phase never started"
+        for k in range(init + 1):
+            sample = turns.imu[k]
+            assert sample is not None
+            queue.put(sample)
+    finally:
+        worker.join(10.0)
+    assert not worker.is_alive() and result == [True]
+
+    state = thread.ctx.state
+    for k in range(init + 1, ticks):
+        sample = turns.imu[k]
+        assert sample is not None
+        queue.put(sample)
+        if k in turns.gps:
+            state.gps.write(turns.gps[k])
+        if k in turns.horizon:
+            state.horizon.write(turns.horizon[k])
+        assert thread.step() == 1
+        out = state.estimator.read()
+        assert out is not None
+        np.testing.assert_allclose(out.quat_wxyz, run.quat[k], rtol=0, atol=1e-12,
+                                   err_msg=f"attitude differs at tick {k}")
+        np.testing.assert_allclose(out.pos_ned_m, run.pos_m[k], rtol=0, atol=1e-9,
+                                   err_msg=f"position differs at tick {k}")
+        np.testing.assert_allclose(out.vel_ned_m_s, run.vel_m_s[k], rtol=0, atol=1e-9,
+                                   err_msg=f"velocity differs at tick {k}")
+    assert thread.horizon_used == run.horizon_used
+    assert thread.gps_accepted == run.gps_accepted
+
+
+def test_gps_outage_in_a_turn_grows_the_error_and_gps_return_recovers_it() -> None:
+    rec = record_flight(FlightSpec(aircraft="c172p", scenario="auto", seed=3, duration_s=70.0))
+    window = (35.0, 55.0)
+    inside = (rec.t_s >= window[0]) & (rec.t_s < window[1])
+    assert np.all(np.abs(np.degrees(rec.euler_true_rad[inside, 0])) > 20.0), "not in a turn"
+    scored = rec.t_s >= 20.0
+    incl_rms = {}
+    for name, hzn in (("gps only", False), ("horizon", True)):
+        opts = EskfOptions(gps_outage_s=window, horizon=hzn, missing_vd_std_m_s=100.0)
+        run = run_eskf(rec, opts)
+        assert run.faults == 0 and run.pd_failures == 0 and run.non_finite == 0
+        err = filter_errors(rec, run.quat, run=run)
+        g = outage_growth(rec, err, window)
+        assert g.end_hpos_m > 3.0 * g.before_hpos_m  # dead reckoning drifts...
+        assert g.recovered_hpos_m < 1.5  # ...and the first fixes after the gap pull it back
+        assert g.max_incl_deg < 2.0
+        incl_rms[name] = rms_deg(err.inclination_rad[scored])
+        if hzn:
+            assert run.horizon_used > 0.95 * sum(1 for k in rec.horizon if k > run.start_tick)
+    # an absolute tilt measurement at 10 Hz beats what GPS alone tells about the tilt
+    assert incl_rms["horizon"] < incl_rms["gps only"]
+    with pytest.raises(ValueError, match="not inside the recording"):
+        outage_growth(rec, err, (100.0, 160.0))
+
+
+def test_bad_options_are_refused_with_the_field_named() -> None:
+    with pytest.raises(ValueError, match="aircraft.*b747"):
+        FlightSpec(aircraft="b747")
+    with pytest.raises(ValueError, match="scenario"):
+        FlightSpec(scenario="barrel")
+    with pytest.raises(ValueError, match="duration_s"):
+        FlightSpec(duration_s=0.0)
+    with pytest.raises(ValueError, match="wind_ned_m_s"):
+        FlightSpec(wind_ned_m_s=(0.0, math.nan, 0.0))
+    with pytest.raises(ValueError, match="horizon_quality"):
+        FlightSpec(horizon_quality=0.0)
+    with pytest.raises(ValueError, match="NOPE"):
+        EskfAsThread(None, params={"NOPE": 1.0})
+    with pytest.raises(ValueError, match="missing_vd_std_m_s"):
+        EskfAsThread(None, missing_vd_std_m_s=-1.0)
+
+
+def test_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    spec = importlib.util.spec_from_file_location("estimation_sitl_bench", BENCH)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(bench)
+    finally:
+        del sys.modules[spec.name]
+    out = tmp_path / "figures.json"
+    code = bench.main(["--aircraft", "c172p", "--wind-m-s", "0", "--seeds", "1",
+                       "--duration-s", "45", "--outage-seeds", "0", "--long-s", "0",
+                       "--timing-s", "5", "--workers", "1", "--json", str(out)])
+    assert code == 0
+    figures = json.loads(out.read_text())
+    acc = figures["accuracy"]["c172p, still air"]
+    assert set(acc) == {"eskf", "eskf+vd", "vqf", "madgwick", "gps fix"}
+    assert acc["eskf+vd"]["incl_rmse_deg"] < acc["vqf"]["incl_rmse_deg"]
+    assert acc["eskf"]["pd_failures"] == 0
+    assert figures["timing"]["eskf"]["step_median_us"] > 0.0
+    text = capsys.readouterr().out
+    assert "### Accuracy" in text and "### Targets" in text
+    with pytest.raises(SystemExit):
+        bench.main(["--param", "NOPE=1"])
