@@ -65,8 +65,33 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     assert np.all(np.isfinite(truth["roll_rad"]))
     assert truth["time_s"][-1] - truth["time_s"][0] > duration * 0.9
     assert summary["simulator"]["real_time_factor"] > 4.0
+    check_estimator(fdir, scenario)
     if scenario == "auto":
         check_auto_levels_wings(fdir)
+
+
+def check_estimator(fdir: Path, scenario: str) -> None:
+    """The on-board GPS/INS filter against JSBSim's truth, in the shared NED frame."""
+    est = read_log(fdir / "estimator.bin").data(1)
+    truth = read_log(fdir / "truth.bin").data(1)
+    assert len(est) > 1000
+    for name in ("roll_rad", "north_m", "vn_m_s"):
+        assert np.isfinite(est[name]).all()
+    assert int(est["faults"][-1]) == 0, "estimator faults in a nominal flight"
+    steady = est[est["time_s"] > est["time_s"][0] + 10]
+
+    def rmse(col: str, wrap: bool = False) -> float:
+        err = steady[col] - np.interp(steady["time_s"], truth["time_s"], truth[col])
+        if wrap:
+            err = (err + np.pi) % (2 * np.pi) - np.pi
+        return float(np.sqrt(np.mean(err**2)))
+
+    if scenario != "aerobatic":  # Euler angles are singular in the loop's vertical climb
+        assert np.degrees(rmse("roll_rad", True)) < 1.0
+        assert np.degrees(rmse("pitch_rad", True)) < 1.0
+        assert np.degrees(rmse("yaw_rad", True)) < 3.0
+    assert np.hypot(rmse("north_m"), rmse("east_m")) < 2.0
+    assert np.sqrt(rmse("vn_m_s") ** 2 + rmse("ve_m_s") ** 2 + rmse("vd_m_s") ** 2) < 0.5
 
 
 def check_auto_levels_wings(fdir: Path) -> None:
