@@ -17,6 +17,7 @@ import pytest
 from companion.estimation.sitl_eval import (
     EskfAsThread,
     EskfOptions,
+    EskfRun,
     FlightSpec,
     SitlRecording,
     filter_errors,
@@ -65,11 +66,18 @@ def test_recording_has_every_sample_and_fix(turns: SitlRecording) -> None:
     assert 25.0 < math.degrees(float(np.abs(turns.euler_true_rad[turn, 0]).mean())) < 35.0
 
 
-def test_project_estimator_beats_imu_only_filters_in_turns(turns: SitlRecording) -> None:
+@pytest.fixture(scope="module")
+def turns_run(turns: SitlRecording) -> EskfRun:
+    return run_eskf(turns)
+
+
+def test_project_estimator_beats_imu_only_filters_in_turns(
+    turns: SitlRecording, turns_run: EskfRun
+) -> None:
     scored = turns.t_s >= WARMUP_S
     turn = steady_turn_mask(turns) & scored
     assert turn.sum() > 2000
-    run = run_eskf(turns)
+    run = turns_run
     ours = filter_errors(turns, run.quat, run=run)
     vqf = filter_errors(turns, run_vqf(turns), zup=True)
     madgwick = filter_errors(turns, run_madgwick(turns), zup=True)
@@ -80,13 +88,14 @@ def test_project_estimator_beats_imu_only_filters_in_turns(turns: SitlRecording)
     # IMU-only filters take the turn's specific force for gravity: they slide towards wings
     # level, so their error approaches the 30 deg bank
     assert vqf_turn > 15.0 and madgwick_turn > 15.0
-    assert ours_turn < 0.1 * min(vqf_turn, madgwick_turn)
-    # loose absolute bounds on the estimator as the thread runs it today
-    assert rms_deg(ours.inclination_rad[scored]) < 2.0
-    assert ours_turn < 2.0
+    assert ours_turn < 0.05 * min(vqf_turn, madgwick_turn)
+    # loose absolute bounds (the benchmark measures about 0.2 deg, 0.25 deg, 0.09 m/s, 1.1 m)
+    assert rms_deg(ours.inclination_rad[scored]) < 1.0
+    assert ours_turn < 1.0
+    assert math.degrees(float(np.max(ours.inclination_rad[scored]))) < 3.0
     assert ours.heading_rad is not None and ours.vel_m_s is not None and ours.hpos_m is not None
-    assert rms_deg(ours.heading_rad[scored]) < 3.0
-    assert float(np.sqrt(np.mean(ours.vel_m_s[scored] ** 2))) < 1.0
+    assert rms_deg(ours.heading_rad[scored]) < 2.0
+    assert float(np.sqrt(np.mean(ours.vel_m_s[scored] ** 2))) < 0.3
     assert float(np.sqrt(np.mean(ours.hpos_m[scored] ** 2))) < 3.0
     # numerically healthy all the way
     assert run.start_tick == 99  # one second of IMU averaging, a fix already there
@@ -96,26 +105,21 @@ def test_project_estimator_beats_imu_only_filters_in_turns(turns: SitlRecording)
     assert run.gps_accepted > 850
     step = run.step_us[np.isfinite(run.step_us)]
     assert step.size == turns.ticks - 100 and float(np.median(step)) > 0.0
+    # NEES is computed on every 10th sample once running, with finite values
+    assert run.nees.size > 800 and np.isfinite(run.nees).all()
 
 
-def test_not_fusing_a_missing_vertical_velocity_meets_the_accuracy_targets(
-    turns: SitlRecording,
+def test_a_receiver_without_vertical_velocity_leaves_the_vertical_channel_sound(
+    turns: SitlRecording, turns_run: EskfRun
 ) -> None:
-    """NMEA without PASHR,POS has no vertical velocity; the thread fuses 0 in its place."""
+    """NMEA without PASHR,POS has no vertical velocity: it must not be fused as 0 m/s (that
+    cost 0.36 m/s of vertical velocity error and, on the j3cub, GPS resets)."""
     assert all(fix.vd_m_s is None for fix in turns.gps.values())
     scored = turns.t_s >= WARMUP_S
-    turn = steady_turn_mask(turns) & scored
-    thread_run = run_eskf(turns)
-    as_thread = filter_errors(turns, thread_run.quat, run=thread_run)
-    fixed_run = run_eskf(turns, EskfOptions(missing_vd_std_m_s=100.0))
-    fixed = filter_errors(turns, fixed_run.quat, run=fixed_run)
-    assert fixed.vel_m_s is not None and as_thread.vel_m_s is not None
-    assert rms_deg(fixed.inclination_rad[scored]) < 0.5
-    assert rms_deg(fixed.inclination_rad[turn]) < 0.5
-    assert math.degrees(float(np.max(fixed.inclination_rad[scored]))) < 2.0
-    assert float(np.sqrt(np.mean(fixed.vel_m_s[scored] ** 2))) < 0.15
-    assert rms_deg(fixed.inclination_rad[scored]) < rms_deg(as_thread.inclination_rad[scored])
-    assert fixed_run.faults == 0
+    true_vd = turns.vel_true_m_s[scored, 2]
+    assert float(np.sqrt(np.mean(true_vd**2))) > 0.2  # the aircraft does move vertically
+    vd_err = turns_run.vel_m_s[scored, 2] - true_vd
+    assert float(np.sqrt(np.mean(vd_err**2))) < 0.1
 
 
 class _WatchedQueue(MessageQueue[ImuSample]):
@@ -188,7 +192,7 @@ def test_gps_outage_in_a_turn_grows_the_error_and_gps_return_recovers_it() -> No
     scored = rec.t_s >= 20.0
     incl_rms = {}
     for name, hzn in (("gps only", False), ("horizon", True)):
-        opts = EskfOptions(gps_outage_s=window, horizon=hzn, missing_vd_std_m_s=100.0)
+        opts = EskfOptions(gps_outage_s=window, horizon=hzn)
         run = run_eskf(rec, opts)
         assert run.faults == 0 and run.pd_failures == 0 and run.non_finite == 0
         err = filter_errors(rec, run.quat, run=run)
@@ -218,8 +222,6 @@ def test_bad_options_are_refused_with_the_field_named() -> None:
         FlightSpec(horizon_quality=0.0)
     with pytest.raises(ValueError, match="NOPE"):
         EskfAsThread(None, params={"NOPE": 1.0})
-    with pytest.raises(ValueError, match="missing_vd_std_m_s"):
-        EskfAsThread(None, missing_vd_std_m_s=-1.0)
 
 
 def test_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -238,8 +240,8 @@ def test_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None
     assert code == 0
     figures = json.loads(out.read_text())
     acc = figures["accuracy"]["c172p, still air"]
-    assert set(acc) == {"eskf", "eskf+vd", "vqf", "madgwick", "gps fix"}
-    assert acc["eskf+vd"]["incl_rmse_deg"] < acc["vqf"]["incl_rmse_deg"]
+    assert set(acc) == {"eskf", "vqf", "madgwick", "gps fix"}
+    assert acc["eskf"]["incl_rmse_deg"] < acc["vqf"]["incl_rmse_deg"]
     assert acc["eskf"]["pd_failures"] == 0
     assert figures["timing"]["eskf"]["step_median_us"] > 0.0
     text = capsys.readouterr().out

@@ -172,3 +172,45 @@ def test_runtime_killed_mid_write_leaves_readable_logs(tmp_path: Path) -> None:
     t = log.data(1)["time_s"]
     # every record older than 0.5 s before the kill is on disk and readable
     assert len(t) > 100 and t[-1] > killed_at_ns / 1e9 - 0.5
+
+
+def test_injected_faults_are_survived_and_counted(tmp_path: Path) -> None:
+    """Garbage, cut frames, bad checksums, a silent GPS and a servo port that vanishes."""
+    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", "30", "--scenario", "level",
+                                  "--fault", "imu:garbage=0.05,cut=0.02,badsum=0.02",
+                                  "--fault", "gps:silence=10-13,badsum=0.05",
+                                  "--vanish", "servo:15:2", "--json"),
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    threads = {t["name"]: t for t in summary["threads"]}
+    for name in ("imu", "gps", "servo", "estimator"):
+        assert threads[name]["restarts"] == 0, threads[name]
+    imu, gps, servo = (threads[n]["counters"] for n in ("imu", "gps", "servo"))
+    assert imu["bad_checksum"] + imu["resyncs"] > 10 and imu["bytes_discarded"] > 0
+    assert gps["bad_checksum"] > 0
+    assert servo["reconnects"] >= 1
+    kinds = {(e["kind"], e["thread"]) for e in summary["events"]}
+    assert ("silent", "gps") in kinds and ("recovered", "gps") in kinds
+    assert ("silent", "servo") in kinds and ("recovered", "servo") in kinds
+    faults = summary["simulator"]["faults"]
+    assert faults["imu"]["garbage_bursts"] > 0 and faults["gps"]["silenced"] > 0
+    est = read_log(flight_dir(tmp_path) / "estimator.bin").data(1)
+    assert np.isfinite(est["roll_rad"]).all()
+
+
+def test_several_vehicles(tmp_path: Path) -> None:
+    base = free_udp_port()
+    proc = subprocess.run(
+        [sys.executable, "-m", "companion", "sim", "--vehicles", "2", "--fast", "--duration", "8",
+         "--log-dir", str(tmp_path / "flights"), "--mavlink", "none",
+         "--legacy-listen", str(base), "--legacy-dest", f"127.0.0.1:{free_udp_port()}"],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    dirs = sorted((tmp_path / "flights").iterdir())
+    assert len(dirs) == 2
+    ids = sorted(json.loads((d / "run.json").read_text())["config"]["vehicle"]["id"] for d in dirs)
+    assert ids == [1, 2]
+    for d in dirs:
+        assert read_log(d / "imu.bin").closed_cleanly
+    assert (tmp_path / "params-v1.parm").exists() or not list(tmp_path.glob("params-v*.parm"))

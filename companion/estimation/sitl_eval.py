@@ -53,6 +53,7 @@ from companion.estimation.quat import (
     quat_to_rotmat,
     quat_to_rotvec,
 )
+from companion.estimation.thread import UNKNOWN_STD, EstimatorThread
 from companion.geo import NedFrame
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
@@ -327,8 +328,6 @@ def estimator_param_defaults() -> dict[str, float]:
     Read from :meth:`EstimatorThread.declare_params`, so the evaluation follows the thread's
     defaults instead of copying them.
     """
-    from companion.estimation.thread import EstimatorThread
-
     thread = EstimatorThread()
     prefix = thread.param_prefix + "_"
     return {spec.name.removeprefix(prefix): float(spec.default)
@@ -340,16 +339,11 @@ class EskfAsThread:
 
     Same initial phase (``INIT_S`` of IMU samples averaged, a GPS fix awaited, the moving-start
     test that widens the tilt and gyro-bias uncertainty), same IMU period from the frame
-    counters, same GPS standard deviations (HDOP and GST) and latency (``GPS_LAG`` plus the
-    driver's measured latency plus the time since hand-off), same horizon weighting and
-    latency. ``params`` overrides thread parameters by suffix; ``eskf_kwargs`` are added to the
+    counters, same GPS standard deviations (HDOP and GST; a vertical velocity the receiver did
+    not send is left unconstrained) and latency (``GPS_LAG`` plus the driver's measured latency
+    plus the time since hand-off), same horizon weighting and latency. ``params`` overrides thread parameters by suffix; ``eskf_kwargs`` are added to the
     keyword arguments the thread passes to :class:`Eskf` (a tuning experiment, not a thread
     feature).
-
-    ``missing_vd_std_m_s`` is a proposed change, off by default: the thread fuses a down
-    velocity of 0 with ``GPS_VEL`` when the receiver reports none (NMEA without ``PASHR,POS``
-    has no vertical velocity); given a value, that axis gets this standard deviation instead,
-    which lets the filter ignore it.
     """
 
     def __init__(
@@ -358,7 +352,6 @@ class EskfAsThread:
         *,
         params: Mapping[str, float] | None = None,
         eskf_kwargs: Mapping[str, float] | None = None,
-        missing_vd_std_m_s: float | None = None,
     ) -> None:
         defaults = estimator_param_defaults()
         given = dict(params or {})
@@ -369,11 +362,6 @@ class EskfAsThread:
             )
         self.p = {**defaults, **{k: float(v) for k, v in given.items()}}
         self.eskf_kwargs = dict(eskf_kwargs or {})
-        if missing_vd_std_m_s is not None and not (
-                math.isfinite(missing_vd_std_m_s) and missing_vd_std_m_s > 0):
-            raise ValueError(
-                f"EskfAsThread: missing_vd_std_m_s must be finite and > 0, got {missing_vd_std_m_s!r}")
-        self.missing_vd_std_m_s = missing_vd_std_m_s
         self.frame = NedFrame(*home_lla) if home_lla is not None else None
         self.filter: Eskf | None = None
         self.init_failed = False
@@ -487,9 +475,9 @@ class EskfAsThread:
         device_s = fix.latency_s or 0.0
         since_handoff_s = (self._last_imu.t_ns - fix.t_ns) / 1e9
         latency = max(0.0, self.p["GPS_LAG"] + device_s + since_handoff_s)
-        vel_std: float | tuple[float, float, float] = self.p["GPS_VEL"]
-        if fix.vd_m_s is None and self.missing_vd_std_m_s is not None:
-            vel_std = (self.p["GPS_VEL"], self.p["GPS_VEL"], self.missing_vd_std_m_s)
+        vel_h = self.p["GPS_VEL"]
+        # a receiver without a vertical velocity (NMEA without PASHR,POS) leaves it unconstrained
+        vel_std = (vel_h, vel_h, vel_h if fix.vd_m_s is not None else UNKNOWN_STD)
         res = f.update_gps(pos, vel, (hstd, hstd, vstd), vel_std, latency)
         if res.accepted:
             self.gps_accepted += 1
@@ -515,8 +503,6 @@ class EskfOptions:
     """GPS fixes handed off within [start, end) seconds are withheld (the receiver lost them)."""
     params: Mapping[str, float] = field(default_factory=dict)
     eskf_kwargs: Mapping[str, float] = field(default_factory=dict)
-    missing_vd_std_m_s: float | None = None
-    """See :class:`EskfAsThread`; None runs the thread's behaviour."""
     check_pd_every: int = 1
     """IMU ticks between explicit Cholesky checks of the covariance (1: every sample)."""
     measure_cpu: bool = False
@@ -588,8 +574,7 @@ def _error_state(rec: SitlRecording, k: int, st_q: FloatArray, pos: FloatArray, 
 def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
     """Run the project's estimator over a recording, as the estimator thread would."""
     opts = options or EskfOptions()
-    est = EskfAsThread(rec.home_lla, params=opts.params, eskf_kwargs=opts.eskf_kwargs,
-                       missing_vd_std_m_s=opts.missing_vd_std_m_s)
+    est = EskfAsThread(rec.home_lla, params=opts.params, eskf_kwargs=opts.eskf_kwargs)
     n = rec.ticks
     quat = np.full((n, 4), np.nan)
     pos = np.full((n, 3), np.nan)

@@ -141,6 +141,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                 if first:
                     world.go()
                     first = False
+                    t0 = time.monotonic()  # the flight starts now; a reboot does not extend it
                 remaining = None
                 if duration_s:
                     remaining = max(0.001, duration_s - (time.monotonic() - t0) * clock.scale)
