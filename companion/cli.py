@@ -125,8 +125,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"warning: {issue} (default used)", file=sys.stderr)
         if sys.stderr.isatty() and args.verbose == 0:
             mgr = rt.manager
-            mgr.on_tick.append(every(1.0, lambda: print(
-                "\r" + status_line(mgr)[:200], end="", file=sys.stderr, flush=True)))
+            mgr.on_tick.append(every(1.0, lambda m=mgr: print(  # type: ignore[misc]
+                "\r" + status_line(m)[:200], end="", file=sys.stderr, flush=True)))
         reason = rt.run(args.duration)
         if sys.stderr.isatty():
             print(file=sys.stderr)

@@ -12,6 +12,7 @@ from functools import cache
 
 import pytest
 
+from companion.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
 from companion.sim.flight import (
     AIRCRAFT,
     DEFAULT_AIRCRAFT,
@@ -20,7 +21,6 @@ from companion.sim.flight import (
     TruthState,
     resolve_aircraft,
 )
-from companion.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
 from companion.sim.scenarios import (
     CHANNEL_COUNT,
     MODE_AUTO_THRESHOLD_US,
