@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
-from companion.estimation.eskf import Eskf
+from companion.estimation.fusion import EstimatorCore
 from companion.estimation.quat import (
     FloatArray,
     heading_error_rad,
@@ -53,7 +53,7 @@ from companion.estimation.quat import (
     quat_to_rotmat,
     quat_to_rotvec,
 )
-from companion.estimation.thread import UNKNOWN_STD, EstimatorThread
+from companion.estimation.thread import EstimatorThread
 from companion.geo import NedFrame
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
@@ -92,7 +92,6 @@ PILOT_EVERY = 2
 GPS_IDLE_MS = 20
 """The GPS driver's default hand-off-on-silence time (GPS_IDLE_MS)."""
 START_UTC_S = 12 * 3600.0
-COUNTER_WRAP = 100
 NEES_EVERY = 10
 """IMU ticks between NEES samples (10 Hz is plenty for a slowly varying statistic)."""
 STEADY_TURN_BANK_RAD = math.radians(20.0)
@@ -334,16 +333,12 @@ def estimator_param_defaults() -> dict[str, float]:
             for spec in thread.declare_params()}
 
 
-class EskfAsThread:
-    """:class:`Eskf` driven the way :class:`EstimatorThread` drives it, one cycle per call.
+class EskfAsThread(EstimatorCore):
+    """:class:`EstimatorCore`, the code the estimator thread runs, with the thread's defaults.
 
-    Same initial phase (``INIT_S`` of IMU samples averaged, a GPS fix awaited, the moving-start
-    test that widens the tilt and gyro-bias uncertainty), same IMU period from the frame
-    counters, same GPS standard deviations (HDOP and GST; a vertical velocity the receiver did
-    not send is left unconstrained) and latency (``GPS_LAG`` plus the driver's measured latency
-    plus the time since hand-off), same horizon weighting and latency. ``params`` overrides thread parameters by suffix; ``eskf_kwargs`` are added to the
-    keyword arguments the thread passes to :class:`Eskf` (a tuning experiment, not a thread
-    feature).
+    ``params`` overrides thread parameters by suffix (unknown names are refused);
+    ``eskf_kwargs`` are added to the keyword arguments given to :class:`Eskf` (a tuning
+    experiment, not a thread feature). :meth:`cycle` is one thread cycle.
     """
 
     def __init__(
@@ -360,137 +355,7 @@ class EskfAsThread:
             raise ValueError(
                 f"EskfAsThread: unknown estimator parameter(s) {unknown}; known: {sorted(defaults)}"
             )
-        self.p = {**defaults, **{k: float(v) for k, v in given.items()}}
-        self.eskf_kwargs = dict(eskf_kwargs or {})
-        self.frame = NedFrame(*home_lla) if home_lla is not None else None
-        self.filter: Eskf | None = None
-        self.init_failed = False
-        self.moving_start = False
-        self.gps_accepted = 0
-        self.gps_rejected = 0
-        self.horizon_used = 0
-        self._gyro: list[tuple[float, float, float]] = []
-        self._accel: list[tuple[float, float, float]] = []
-        self._fix: GpsFix | None = None
-        self._last_counter: int | None = None
-        self._last_imu: ImuSample | None = None
-
-    def _new_filter(self, moving: bool) -> Eskf:
-        p = self.p
-        extra: dict[str, float] = (
-            {"init_tilt_std_rad": 0.6, "init_gyro_bias_std_rad_s": 0.02} if moving else {})
-        kwargs: dict[str, float] = {
-            "gyro_noise_rad_s_rt_hz": p["GYR_NSD"], "accel_noise_m_s2_rt_hz": p["ACC_NSD"],
-            "gyro_bias_rw_rad_s_rt_s": p["GB_RW"], "accel_bias_rw_m_s2_rt_s": p["AB_RW"],
-            "horizon_std_rad": p["HZN_STD"], **extra}
-        kwargs.update(self.eskf_kwargs)
-        return Eskf(**kwargs)  # type: ignore[arg-type]
-
-    def cycle(
-        self,
-        samples: Sequence[ImuSample],
-        fix: GpsFix | None = None,
-        horizon: HorizonMeasurement | None = None,
-    ) -> bool:
-        """One thread cycle: the IMU samples that arrived, then the newest GPS and horizon fix.
-
-        Returns True once the filter runs (after the initial phase).
-        """
-        if self.filter is None:
-            if not self.init_failed:
-                self._initial_phase(samples, fix)
-            return self.filter is not None
-        f = self.filter
-        for s in samples:
-            dt = IMU_DT_S
-            if self._last_counter is not None:
-                dt = ((s.counter - self._last_counter) % COUNTER_WRAP) * IMU_DT_S
-            self._last_counter = s.counter
-            if dt <= 0.0:
-                continue
-            f.predict(s.rates_rad_s, s.accel_m_s2, dt)
-            self._last_imu = s
-        if fix is not None:
-            self._fuse_gps(f, fix)
-        if horizon is not None and self.p["HZN_USE"]:
-            self._fuse_horizon(f, horizon)
-        return True
-
-    def _initial_phase(self, samples: Sequence[ImuSample], fix: GpsFix | None) -> None:
-        need = max(1, int(self.p["INIT_S"] / IMU_DT_S))
-        for s in samples:
-            if len(self._gyro) < need:
-                self._gyro.append(s.rates_rad_s)
-                self._accel.append(s.accel_m_s2)
-                self._last_counter = s.counter
-                self._last_imu = s
-        if fix is not None and fix.fix > 0 and fix.lat_deg is not None:
-            self._fix = fix
-        if len(self._gyro) < need or self._fix is None:
-            return
-        first = self._fix
-        if self.frame is None:
-            self.frame = NedFrame(float(first.lat_deg or 0.0), float(first.lon_deg or 0.0),
-                                  float(first.alt_m or 0.0))
-        pos, vel = self._gps_ned(first)
-        gyro_arr, accel_arr = np.asarray(self._gyro), np.asarray(self._accel)
-        gyro_mean = gyro_arr.mean(axis=0)
-        moving = bool(np.abs(gyro_mean).max() > 0.02 or gyro_arr.std(axis=0).max() > 0.02
-                      or abs(np.linalg.norm(accel_arr.mean(axis=0)) - 9.80665) > 0.5)
-        f = self._new_filter(moving)
-        if not f.initialise(accel_arr.mean(axis=0), np.zeros(3) if moving else gyro_mean,
-                            pos, vel):
-            self.init_failed = True
-            log.warning("estimator initialisation refused (IMU mean is not ~1 g)")
-            return
-        self.moving_start = moving
-        self.filter = f
-
-    def _gps_ned(self, fix: GpsFix) -> tuple[FloatArray, FloatArray]:
-        assert self.frame is not None
-        pos = np.array(self.frame.to_ned(float(fix.lat_deg or 0.0), float(fix.lon_deg or 0.0),
-                                         float(fix.alt_m or 0.0)))
-        if fix.vn_m_s is not None and fix.ve_m_s is not None:
-            vel = np.array([fix.vn_m_s, fix.ve_m_s, fix.vd_m_s or 0.0])
-        elif fix.speed_m_s is not None and fix.course_deg is not None:
-            c = math.radians(fix.course_deg)
-            vel = np.array([fix.speed_m_s * math.cos(c), fix.speed_m_s * math.sin(c),
-                            fix.vd_m_s or 0.0])
-        else:
-            vel = np.zeros(3)
-        return pos, vel
-
-    def _fuse_gps(self, f: Eskf, fix: GpsFix) -> None:
-        if self._last_imu is None:
-            return
-        if fix.fix <= 0 or fix.lat_deg is None or fix.lon_deg is None or fix.alt_m is None:
-            return
-        pos, vel = self._gps_ned(fix)
-        hstd = self.p["GPS_HSTD"] * (fix.hdop or 1.5)
-        if fix.h_std_m is not None and math.isfinite(fix.h_std_m):
-            hstd = max(hstd, fix.h_std_m / math.sqrt(2))
-        vstd = self.p["GPS_VSTD"]
-        if fix.alt_std_m is not None and math.isfinite(fix.alt_std_m):
-            vstd = max(vstd, fix.alt_std_m)
-        device_s = fix.latency_s or 0.0
-        since_handoff_s = (self._last_imu.t_ns - fix.t_ns) / 1e9
-        latency = max(0.0, self.p["GPS_LAG"] + device_s + since_handoff_s)
-        vel_h = self.p["GPS_VEL"]
-        # a receiver without a vertical velocity (NMEA without PASHR,POS) leaves it unconstrained
-        vel_std = (vel_h, vel_h, vel_h if fix.vd_m_s is not None else UNKNOWN_STD)
-        res = f.update_gps(pos, vel, (hstd, hstd, vstd), vel_std, latency)
-        if res.accepted:
-            self.gps_accepted += 1
-        else:
-            self.gps_rejected += 1
-
-    def _fuse_horizon(self, f: Eskf, h: HorizonMeasurement) -> None:
-        if self._last_imu is None:
-            return
-        latency = max(0.0, (self._last_imu.t_ns - h.t_ns) / 1e9)
-        if h.quality > 0 and f.update_attitude(h.roll_rad, h.pitch_rad, h.quality,
-                                                latency).accepted:
-            self.horizon_used += 1
+        super().__init__({**defaults, **given}, home_lla, eskf_kwargs=eskf_kwargs)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,210 @@
+"""How the on-board estimator feeds the filter: one implementation for flight and for evaluation.
+
+`EstimatorCore` holds everything between the decoded sensor data and `Eskf`: the initial phase
+(average the IMU to level and take the gyro bias, wait for a GPS fix, and widen the initial
+uncertainty when the aircraft is evidently not still), the IMU period from the frame counters,
+the GPS measurement model (position in the shared NED frame, standard deviations from HDOP, GST
+and the parameters, an unmeasured vertical velocity left unconstrained) and its latency, and the
+horizon weighting. The estimator thread wraps it with queues, slots and logs; the SITL
+evaluation (`sitl_eval`) drives it directly, so what is benchmarked is what flies.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from companion.estimation.eskf import Eskf, UpdateResult
+from companion.geo import NedFrame
+from companion.state import GpsFix, HorizonMeasurement, ImuSample
+
+log = logging.getLogger(__name__)
+
+IMU_PERIOD_S = 0.01
+COUNTER_WRAP = 100
+UNKNOWN_STD = 1e3  # 1-sigma given to a component the receiver did not measure
+GRAVITY_M_S2 = 9.80665
+STILL_GYRO_RAD_S = 0.02  # initial phase: above this mean or spread the aircraft is turning
+
+
+class EstimatorCore:
+    """`Eskf` driven by decoded IMU samples, GPS fixes and horizon measurements.
+
+    `params` are the estimator's parameters by suffix (`INIT_S`, `GYR_NSD`, `GPS_HSTD`, ...:
+    see `EstimatorThread.declare_params`); `home_lla` fixes the NED origin (None: the first GPS
+    fix); `eskf_kwargs` are extra `Eskf` keyword arguments (tuning experiments).
+    """
+
+    def __init__(self, params: Mapping[str, float], home_lla: tuple[float, float, float] | None,
+                 *, eskf_kwargs: Mapping[str, Any] | None = None) -> None:
+        self.p: dict[str, float] = {k: float(v) for k, v in params.items()}
+        self.eskf_kwargs = dict(eskf_kwargs or {})
+        self.frame = NedFrame(*home_lla) if home_lla is not None else None
+        self.filter: Eskf | None = None
+        self.init_failed = False
+        self.moving_start = False
+        self.gps_accepted = 0
+        self.gps_rejected = 0
+        self.horizon_used = 0
+        self.last_imu: ImuSample | None = None
+        self._last_counter: int | None = None
+        self._gyro: list[tuple[float, float, float]] = []
+        self._accel: list[tuple[float, float, float]] = []
+        self._fix: GpsFix | None = None
+
+    # ------------------------------------------------------------------ set-up
+    def new_filter(self, moving: bool) -> Eskf:
+        p = self.p
+        kwargs: dict[str, Any] = {
+            "gyro_noise_rad_s_rt_hz": p["GYR_NSD"], "accel_noise_m_s2_rt_hz": p["ACC_NSD"],
+            "gyro_bias_rw_rad_s_rt_s": p["GB_RW"], "accel_bias_rw_m_s2_rt_s": p["AB_RW"],
+            "horizon_std_rad": p["HZN_STD"]}
+        if moving:
+            kwargs.update(init_tilt_std_rad=0.6, init_gyro_bias_std_rad_s=0.02)
+        kwargs.update(self.eskf_kwargs)
+        return Eskf(**kwargs)
+
+    def update_params(self, params: Mapping[str, float]) -> None:
+        """New parameter values; noise densities apply from the next prediction."""
+        self.p.update({k: float(v) for k, v in params.items()})
+        f = self.filter
+        if f is not None:
+            f.gyro_noise_rad_s_rt_hz = self.p["GYR_NSD"]
+            f.accel_noise_m_s2_rt_hz = self.p["ACC_NSD"]
+            f.gyro_bias_rw_rad_s_rt_s = self.p["GB_RW"]
+            f.accel_bias_rw_m_s2_rt_s = self.p["AB_RW"]
+            f.horizon_std_rad = self.p["HZN_STD"]
+            f._q_cache.clear()
+
+    def initial_phase(self, samples: Sequence[ImuSample], fix: GpsFix | None) -> bool:
+        """Collect `INIT_S` of IMU and a GPS fix; start the filter when both are there.
+
+        The phase assumes the aircraft is still (on the ground, or straight and level). If the
+        gyro says it is turning, its mean is not the bias and the accelerometer does not point
+        down: the filter then starts with zero bias and a wide tilt uncertainty instead of a
+        wrong certainty. Returns True once the filter runs.
+        """
+        if self.filter is not None:
+            return True
+        if self.init_failed:
+            return False
+        need = max(1, int(self.p["INIT_S"] / IMU_PERIOD_S))
+        for s in samples:
+            if len(self._gyro) < need:
+                self._gyro.append(s.rates_rad_s)
+                self._accel.append(s.accel_m_s2)
+                self._last_counter = s.counter
+                self.last_imu = s
+        if fix is not None and fix.fix > 0 and fix.lat_deg is not None:
+            self._fix = fix
+        if len(self._gyro) < need or self._fix is None:
+            return False
+        first = self._fix
+        if self.frame is None:
+            self.frame = NedFrame(float(first.lat_deg or 0.0), float(first.lon_deg or 0.0),
+                                  float(first.alt_m or 0.0))
+        pos, vel = self.gps_ned(first)
+        gyro, accel = np.asarray(self._gyro), np.asarray(self._accel)
+        gyro_mean, accel_mean = gyro.mean(axis=0), accel.mean(axis=0)
+        moving = bool(np.abs(gyro_mean).max() > STILL_GYRO_RAD_S
+                      or gyro.std(axis=0).max() > STILL_GYRO_RAD_S
+                      or abs(np.linalg.norm(accel_mean) - GRAVITY_M_S2) > 0.5)
+        f = self.new_filter(moving)
+        if not f.initialise(accel_mean, np.zeros(3) if moving else gyro_mean, pos, vel):
+            self.init_failed = True
+            log.warning("estimator initialisation refused (IMU mean is not ~1 g)")
+            return False
+        self.moving_start = moving
+        self.filter = f
+        return True
+
+    # ------------------------------------------------------------------ one cycle
+    def predict(self, samples: Sequence[ImuSample]) -> int:
+        """Integrate every sample, with the period from the IMU's own frame counter."""
+        f = self.filter
+        if f is None:
+            return 0
+        used = 0
+        for s in samples:
+            dt = IMU_PERIOD_S
+            if self._last_counter is not None:
+                dt = ((s.counter - self._last_counter) % COUNTER_WRAP) * IMU_PERIOD_S
+            self._last_counter = s.counter
+            if dt <= 0.0:
+                continue  # a repeated frame
+            f.predict(s.rates_rad_s, s.accel_m_s2, dt)
+            self.last_imu = s
+            used += 1
+        return used
+
+    def gps_ned(self, fix: GpsFix) -> tuple[np.ndarray, np.ndarray]:
+        assert self.frame is not None
+        pos = np.array(self.frame.to_ned(float(fix.lat_deg or 0.0), float(fix.lon_deg or 0.0),
+                                         float(fix.alt_m or 0.0)))
+        if fix.vn_m_s is not None and fix.ve_m_s is not None:
+            vel = np.array([fix.vn_m_s, fix.ve_m_s, fix.vd_m_s or 0.0])
+        elif fix.speed_m_s is not None and fix.course_deg is not None:
+            c = math.radians(fix.course_deg)
+            vel = np.array([fix.speed_m_s * math.cos(c), fix.speed_m_s * math.sin(c),
+                            fix.vd_m_s or 0.0])
+        else:
+            vel = np.zeros(3)
+        return pos, vel
+
+    def fuse_gps(self, fix: GpsFix) -> tuple[UpdateResult, float] | None:
+        """Fuse one fix; returns the filter's verdict and the latency used, or None if unusable."""
+        f = self.filter
+        if f is None or self.last_imu is None:
+            return None
+        if fix.fix <= 0 or fix.lat_deg is None or fix.lon_deg is None or fix.alt_m is None:
+            return None
+        pos, vel = self.gps_ned(fix)
+        hstd = self.p["GPS_HSTD"] * (fix.hdop or 1.5)
+        if fix.h_std_m is not None and math.isfinite(fix.h_std_m):
+            hstd = max(hstd, fix.h_std_m / math.sqrt(2))
+        vstd = self.p["GPS_VSTD"]
+        if fix.alt_std_m is not None and math.isfinite(fix.alt_std_m):
+            vstd = max(vstd, fix.alt_std_m)
+        vel_h = self.p["GPS_VEL"]
+        # NMEA without $PASHR,POS carries no vertical velocity: leave it unconstrained rather
+        # than claim the aircraft is level (0 m/s) while it climbs
+        vel_std = (vel_h, vel_h, vel_h if fix.vd_m_s is not None else UNKNOWN_STD)
+        # age of the fix relative to the newest IMU sample: the receiver's own delay, the
+        # transfer measured by the driver, and the time since hand-off
+        device_s = fix.latency_s or 0.0
+        since_handoff_s = (self.last_imu.t_ns - fix.t_ns) / 1e9
+        latency = max(0.0, self.p["GPS_LAG"] + device_s + since_handoff_s)
+        res = f.update_gps(pos, vel, (hstd, hstd, vstd), vel_std, latency)
+        if res.accepted:
+            self.gps_accepted += 1
+        else:
+            self.gps_rejected += 1
+        return res, latency
+
+    def fuse_horizon(self, h: HorizonMeasurement) -> bool:
+        """Roll and pitch from the horizon, weighted by its quality; False when not used."""
+        f = self.filter
+        if f is None or self.last_imu is None or not self.p["HZN_USE"] or h.quality <= 0:
+            return False
+        latency = max(0.0, (self.last_imu.t_ns - h.t_ns) / 1e9)
+        if f.update_attitude(h.roll_rad, h.pitch_rad, h.quality, latency).accepted:
+            self.horizon_used += 1
+            return True
+        return False
+
+    def cycle(self, samples: Sequence[ImuSample], fix: GpsFix | None = None,
+              horizon: HorizonMeasurement | None = None) -> bool:
+        """One estimator cycle: the IMU samples that arrived, then the newest GPS and horizon
+        fix. Returns True once the filter runs (after the initial phase)."""
+        if self.filter is None:
+            return self.initial_phase(samples, fix)
+        self.predict(samples)
+        if fix is not None:
+            self.fuse_gps(fix)
+        if horizon is not None:
+            self.fuse_horizon(horizon)
+        return True
