@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import statistics
+import sys
 import threading
 import time
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from companion.clock import Clock
 from companion.params import ParamRegistry
+from companion.runtime import SWITCH_INTERVAL_S
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
 
 
@@ -159,6 +161,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     logging.disable(logging.WARNING)  # the stalls are deliberate
+    # the GIL switch interval the runtime runs with (companion.runtime.Runtime.start)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     seconds = 2.0 if args.quick else 10.0
     stalls = 5 if args.quick else 20
 
