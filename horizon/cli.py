@@ -65,6 +65,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
                     help="play a video file at this frame rate (default: as fast as possible)")
     st.add_argument("--no-track", action="store_true", help="single-frame detection only")
     st.add_argument("--csv", metavar="OUT", help="also log every estimate to this CSV")
+    st.add_argument("--rerun", action="store_true",
+                    help="show the frames and the detected horizon in a spawned rerun viewer")
+    st.add_argument("--rerun-save", metavar="PATH",
+                    help="write the frames and the detected horizon to a rerun .rrd file")
     st.set_defaults(func=_cmd_stream)
 
     sy = sub.add_parser(
@@ -248,9 +252,24 @@ def _cmd_stream(args: argparse.Namespace) -> int:
             close()
         return _fail(str(exc))
 
+    viewer = None
+    if args.rerun or args.rerun_save:
+        from horizon.rerun_frames import RerunFrames
+
+        try:
+            viewer = RerunFrames(spawn=args.rerun,
+                                 save_path=Path(args.rerun_save) if args.rerun_save else None)
+        except Exception as exc:  # rerun raises several kinds for a bad path or no viewer
+            for close in closers:
+                close()
+            return _fail(f"rerun: {exc}")
+        closers.append(viewer.close)
+
     def on_estimate(frame: Frame, est: HorizonEstimate) -> None:
         if sink is not None:
             sink.write(frame.label, est)
+        if viewer is not None:
+            viewer(frame.image, est, frame.time_ns)
 
     def on_error(message: str) -> None:
         errors.append(message)
