@@ -131,6 +131,25 @@ class Runtime:
         threads = build_threads(cfg) + build_computation(self.opts)
         self.manager = ThreadManager(self.ctx, threads)
         self.bridges: list[Any] = []
+        try:
+            self._build_bridges(cfg, dry)
+        except BaseException:
+            for bridge in self.bridges:  # release the sockets of those already built
+                try:
+                    bridge.close()
+                except Exception:
+                    log.exception("closing %s after a failed start", type(bridge).__name__)
+            raise
+        self.events = self.manager.subscribe_events(capacity=10_000)
+        self.event_log: list[dict[str, Any]] = []
+        self.manager.on_tick.append(self._collect_events)
+        # every parameter is declared now: load the persisted values over the defaults
+        self.param_issues: list[FileIssue] = (
+            [] if dry else params.attach_file(Path(cfg.params.file)))
+        self._started = False
+
+    def _build_bridges(self, cfg: Config, dry: bool) -> None:
+        """MAVLink, legacy protocol and live view: everything that talks to the ground."""
         if self.opts.mavlink and cfg.mavlink.endpoints:
             from gcs_bridge import MavlinkBridge
 
@@ -145,19 +164,12 @@ class Runtime:
 
             self.bridges.append(LegacyAdapter(
                 self.ctx, self.manager, dest=cfg.legacy.dest, listen_port=cfg.legacy.listen,
-                allow=list(cfg.legacy.allow), bind_host=cfg.legacy.bind))
+                allow=list(cfg.legacy.allow), bind_host=cfg.legacy.bind, listen=not dry))
         if (cfg.rerun.enabled or cfg.rerun.save) and not dry:
             from companion.liveview import LiveView
 
             self.bridges.append(LiveView(self.ctx, self.manager, spawn=cfg.rerun.enabled,
                                          save_path=Path(cfg.rerun.save) if cfg.rerun.save else None))
-        self.events = self.manager.subscribe_events(capacity=10_000)
-        self.event_log: list[dict[str, Any]] = []
-        self.manager.on_tick.append(self._collect_events)
-        # every parameter is declared now: load the persisted values over the defaults
-        self.param_issues: list[FileIssue] = (
-            [] if dry else params.attach_file(Path(cfg.params.file)))
-        self._started = False
 
     # ------------------------------------------------------------------ running
     def run_info(self) -> dict[str, Any]:

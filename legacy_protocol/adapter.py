@@ -22,6 +22,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from companion.config import ConfigError
 from companion.params import ParamError
 from companion.state import HorizonMeasurement
 from companion.sync import MessageQueue
@@ -108,6 +109,7 @@ class LegacyAdapter:
         listen_port: int = 5500,
         allow: Iterable[str] = ("127.0.0.0/8",),
         bind_host: str = "0.0.0.0",
+        listen: bool = True,
     ) -> None:
         self.ctx = ctx
         self.manager = manager
@@ -125,9 +127,18 @@ class LegacyAdapter:
         }
         self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]]] = MessageQueue(256)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        self.sock.bind((bind_host, listen_port))
+        if listen:  # False: only build (parameter listing), never take the port
+            # No SO_REUSEADDR: a second runtime on the same command port must fail here, loudly,
+            # rather than silently share the port and receive half of the commands.
+            try:
+                self.sock.bind((bind_host, listen_port))
+            except OSError as exc:
+                self.sock.close()
+                raise ConfigError(
+                    f"legacy.listen: cannot listen on {bind_host}:{listen_port}: {exc.strerror} "
+                    "(is another runtime using this port?)"
+                ) from None
         self.listen_addr = self.sock.getsockname()
         self.sock.settimeout(0.1)
         self._seq = 0

@@ -194,3 +194,29 @@ def test_refused_source_is_dropped(tmp_path: Path) -> None:
         link.close()
         sender.close()
         sim.close()
+
+
+def test_a_second_runtime_on_the_same_command_port_is_refused() -> None:
+    import pytest
+
+    from companion.clock import Clock
+    from companion.config import ConfigError
+    from companion.params import ParamRegistry
+    from companion.watchdog import RuntimeContext, ThreadManager
+    from legacy_protocol.adapter import LegacyAdapter
+
+    port = free_udp_port()
+    ctx = RuntimeContext(clock=Clock(), params=ParamRegistry())
+    first = LegacyAdapter(ctx, ThreadManager(ctx, []), dest="127.0.0.1:9", listen_port=port,
+                          bind_host="127.0.0.1")
+    try:
+        ctx2 = RuntimeContext(clock=Clock(), params=ParamRegistry())
+        with pytest.raises(ConfigError, match=f"cannot listen on 127.0.0.1:{port}"):
+            LegacyAdapter(ctx2, ThreadManager(ctx2, []), dest="127.0.0.1:9", listen_port=port,
+                          bind_host="127.0.0.1")
+        # building without listening (parameter listing while a runtime flies) is fine
+        ctx3 = RuntimeContext(clock=Clock(), params=ParamRegistry())
+        LegacyAdapter(ctx3, ThreadManager(ctx3, []), dest="127.0.0.1:9", listen_port=port,
+                      bind_host="127.0.0.1", listen=False).close()
+    finally:
+        first.close()
