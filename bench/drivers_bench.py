@@ -85,7 +85,10 @@ def rows(min_s: float) -> list[tuple[str, float, float, float, float]]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=0.5, help="minimum timing per cell")
+    parser.add_argument("--quick", action="store_true", help="short timings (0.1 s per cell)")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.seconds = 0.1
     header = f"{'decode cost, us per unit':<28}{'1/feed':>10}{'1 s/feed':>10}{'byte/feed':>11}{'period':>10}"
     print(header)
     print("-" * len(header))

@@ -72,7 +72,10 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=300.0, help="simulated seconds per run")
     parser.add_argument("--scenario", default="mixed", choices=SCENARIOS)
     parser.add_argument("--aircraft", nargs="*", default=sorted(AIRCRAFT), choices=sorted(AIRCRAFT))
+    parser.add_argument("--quick", action="store_true", help="30 simulated seconds per run")
     args = parser.parse_args()
+    if args.quick:
+        args.duration = 30.0
 
     print(f"simulated {args.duration:.0f} s per run, model at 100 Hz, pilot at 50 Hz")
     print(f"{'aircraft':<8} {'run':<18} {'steps/s (cpu)':>14} {'RTF wall':>9} {'RTF cpu':>8}")
