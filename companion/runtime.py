@@ -272,8 +272,7 @@ class Runtime:
             ],
             "files": {p.name: p.stat().st_size for p in files},
             "events": list(self.event_log),
-            "messages": [s for b in self.bridges if hasattr(b, "stats")
-                         for s in (b.stats() if isinstance(b.stats(), list) else [b.stats()])],
+            "messages": [s for b in self.bridges if hasattr(b, "stats") for s in b.stats()],
         }
 
 

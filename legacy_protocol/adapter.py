@@ -382,9 +382,10 @@ class LegacyAdapter:
             s.name[:16],
         )
 
-    def stats(self) -> dict[str, Any]:
-        return {"link": f"legacy udp {self.listen_addr[0]}:{self.listen_addr[1]} -> "
-                        f"{self.dest[0]}:{self.dest[1]}", **vars(self.counters)}
+    def stats(self) -> list[dict[str, Any]]:
+        """Per-link figures, one entry (the same shape as the MAVLink bridge's list)."""
+        return [{"link": f"legacy udp {self.listen_addr[0]}:{self.listen_addr[1]} -> "
+                         f"{self.dest[0]}:{self.dest[1]}", **vars(self.counters)}]
 
     def close(self) -> None:
         try:

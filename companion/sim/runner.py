@@ -127,7 +127,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             cfg.devices.gps.port = world.devices["gps"]
             cfg.devices.servo.port = world.devices["servo"]
             cfg.vehicle.home = ",".join(repr(float(v)) for v in world.devices["home"])
-            t0 = time.monotonic()
+            t0 = 0.0  # set at take-off, below
             first = True
             while True:
                 rt = Runtime(cfg, RuntimeOptions(

@@ -13,6 +13,7 @@ port can vanish and come back (a fault the drivers must survive) under the same 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -276,9 +277,7 @@ class World:
             "late_ticks": self.late_ticks,
             "servo_answers": self.board.answered,
             "dropped_bytes": {d: p.dropped_bytes for d, p in self.ptys.items()},
-            "faults": {d: vars(i.counts) if hasattr(i.counts, "__dict__") else
-                       {k: getattr(i.counts, k) for k in i.counts.__slots__}
-                       for d, i in self.injectors.items()},
+            "faults": {d: dataclasses.asdict(i.counts) for d, i in self.injectors.items()},
         }
 
     def _tick(self, model: FlightModel) -> None:
