@@ -7,7 +7,7 @@ video, and frames per second at 320x240 on one core. Prints markdown.
 
     python bench/horizon_bench.py [--quick] [--methods baseline,robust] [--dev DIR]
 
-Data sets: ``dev`` (the 108 real frames in shared/data/horizon-dev, if present), ``synth``
+Data sets: ``dev`` (the 108 real frames of the Horizon-UAV dataset in tests/data/horizon-dev), ``synth``
 (rendered 320x240 scenes, half of them with roads and buildings), ``synth-lens`` (the same with
 strong barrel distortion, detectors given the camera model). Each disturbance is applied with a
 seed derived from the frame, so runs are repeatable.
@@ -55,7 +55,7 @@ from horizon.synth import (  # noqa: E402
 )
 from horizon.tracking import HorizonTracker  # noqa: E402
 
-DEFAULT_DEV = REPO.parent / "shared" / "data" / "horizon-dev"
+DEFAULT_DEV = REPO / "tests" / "data" / "horizon-dev"
 GROSS_ROLL_DEG = 10.0
 GROSS_OFFSET_PCT = 10.0
 LENS = {"hfov_deg": 100.0, "k1": -0.28, "k2": 0.06}
@@ -80,7 +80,8 @@ class Errors:
 def load_dev(folder: Path, step: int) -> list[Sample]:
     gt = folder / "gt.csv"
     if not gt.is_file():
-        return []
+        raise SystemExit(f"{gt}: the development frames' ground truth is missing "
+                         "(it is tracked in git: restore tests/data)")
     out = []
     with gt.open(newline="") as f:
         rows = list(csv.DictReader(f))
@@ -337,15 +338,12 @@ def main(argv: list[str] | None = None) -> int:
     }
     t0 = time.perf_counter()
     print("## Horizon detection benchmark\n")
-    if not dev:
-        print(f"(real frames not found at {args.dev}: dev rows skipped)\n")
     print(f"Gross failure: roll error > {GROSS_ROLL_DEG:g} deg, offset error > "
           f"{GROSS_OFFSET_PCT:g} % of height, or no answer. Errors in deg and % of height.\n")
     lines, per = accuracy_tables(datasets, methods, disturbances)
     print("\n".join(lines))
-    if dev:
-        print("\n### Gross failures per clip (dev, %)\n")
-        print("\n".join(clip_table(dev, per, methods, ["clean", "stripes", "noise"])))
+    print("\n### Gross failures per clip (dev, %)\n")
+    print("\n".join(clip_table(dev, per, methods, ["clean", "stripes", "noise"])))
     print("\n### False detections on frames without a horizon (%)\n")
     print("\n".join(negatives_table(make_negatives(30 if args.quick else 90, args.seed + 2), methods)))
     print("\n### Synthetic video with disturbance bursts\n")

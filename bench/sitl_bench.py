@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import psutil
@@ -30,7 +32,36 @@ THESIS = {"imu": "10 ms mean, great variance and spikes", "gps": "140 ms instead
           "servo": "not reported"}
 
 
-def fly(tmp: Path, duration_s: float, speed: float | None) -> tuple[dict, dict[str, float], Path]:
+def thread_cpu_s(pid: int) -> dict[int, tuple[str, float]]:
+    """CPU seconds (user + system) of every thread of `pid`, by thread id, with its OS name.
+
+    Managed threads name themselves (companion.osthread), so `comm` is the thread's name; the
+    main thread, which runs the thread manager, carries the process's name."""
+    tick = float(os.sysconf("SC_CLK_TCK"))
+    out: dict[int, tuple[str, float]] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            comm = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended between the listing and the read
+            continue
+        tid = int(task.name)
+        name = "manager (main thread)" if tid == pid else comm
+        out[tid] = (name, (int(fields[11]) + int(fields[12])) / tick)
+    return out
+
+
+def per_thread_pct(first: dict[int, tuple[str, float]], last: dict[int, tuple[str, float]],
+                   span_s: float) -> dict[str, float]:
+    """% of one core per thread name between two snapshots (restarted threads summed by name)."""
+    pct: dict[str, float] = {}
+    for tid, (name, cpu) in last.items():
+        before = first.get(tid, (name, 0.0))[1]
+        pct[name] = pct.get(name, 0.0) + (cpu - before) / span_s * 100
+    return pct
+
+
+def fly(tmp: Path, duration_s: float, speed: float | None) -> tuple[dict, dict[str, Any], Path]:
     cmd = [sys.executable, "-m", "companion", "sim", "--duration", str(duration_s),
            "--log-dir", str(tmp / "flights"), "--params-file", str(tmp / "p.parm"),
            "--mavlink", "udpout:127.0.0.1:14550", "--json", "--scenario", "mixed"]
@@ -39,22 +70,29 @@ def fly(tmp: Path, duration_s: float, speed: float | None) -> tuple[dict, dict[s
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     ps = psutil.Process(proc.pid)
     samples: list[tuple[float, float, float]] = []  # (wall, runtime cpu, world cpu)
+    threads: list[dict[int, tuple[str, float]]] = []  # per-thread snapshot at each sample
     start = time.monotonic()
     while proc.poll() is None:
         try:
             kids = ps.children()
             world = sum(kids[0].cpu_times()[:2]) if kids else 0.0
+            snap = thread_cpu_s(proc.pid)
             samples.append((time.monotonic() - start, sum(ps.cpu_times()[:2]), world))
-        except psutil.Error:
+            threads.append(snap)
+        except (psutil.Error, OSError):
             pass
         time.sleep(0.2)
     # steady state only: from a quarter into the flight (start-up imports and trim are over)
     # to the last sample before shutdown
-    first = next(s for s in samples if s[0] >= samples[-1][0] * 0.25)
-    last = samples[-2] if len(samples) > 2 else samples[-1]
+    i_first = next(i for i, s in enumerate(samples) if s[0] >= samples[-1][0] * 0.25)
+    i_last = len(samples) - 2 if len(samples) > 2 else len(samples) - 1
+    first, last = samples[i_first], samples[i_last]
     span = last[0] - first[0]
-    cpu = {"wall": samples[-1][0], "span": span,
-           "runtime": (last[1] - first[1]) / span, "world": (last[2] - first[2]) / span}
+    cpu: dict[str, Any] = {
+        "wall": samples[-1][0], "span": span,
+        "runtime": (last[1] - first[1]) / span, "world": (last[2] - first[2]) / span,
+        "threads": per_thread_pct(threads[i_first], threads[i_last], span),
+    }
     out, _ = proc.communicate()
     summary = json.loads(out)
     fdir = Path(summary["flight_dir"])
@@ -83,6 +121,15 @@ def main() -> None:
         print(f"| runtime vs the 15 % budget | {rt_pct / 15:.2f}x |")
         print(f"\n(steady state over {cpu['span']:.1f} s of the {cpu['wall']:.1f} s run; start-up "
               f"imports and trim excluded)\n")
+        print("Per thread of the runtime (OS thread names; /proc/<pid>/task, same window):\n")
+        print("| thread | CPU % of one core |\n|---|---|")
+        ranked = sorted(cpu["threads"].items(), key=lambda kv: -kv[1])
+        for name, pct in ranked:
+            if pct >= 0.05:
+                print(f"| {name} | {pct:.1f} |")
+        rest = sum(pct for _, pct in ranked if pct < 0.05)
+        print(f"| others ({sum(1 for _, p in ranked if p < 0.05)} threads) | {rest:.1f} |")
+        print(f"| sum | {sum(cpu['threads'].values()):.1f} |\n")
         print("## Device thread periods in that flight (baseline: the nominal period)\n")
         print("| thread | nominal ms | mean ms | p50 dev ms | p99 dev ms | max dev ms | "
               "mean / nominal | thesis 2003 |")

@@ -45,6 +45,10 @@ def parse_hostport(text: str, default_port: int) -> tuple[str, int]:
         raise ValueError(f"expected HOST:PORT, got {text!r}") from None
 
 
+_ZERO_MEANS_UNLIMITED = frozenset({"MGR_EXEC_TIME_S"})
+"""Values for which the protocol gives 0 a meaning (no execution time limit), not a period."""
+
+
 @dataclass
 class LegacyCounters:
     received: int = 0
@@ -52,7 +56,8 @@ class LegacyCounters:
     refused_source: int = 0  # not in the allow-list: dropped
     malformed: int = 0
     unexpected_type: int = 0  # a message type where a command was expected
-    queue_full: int = 0
+    other_vehicle: int = 0  # addressed to another aircraft on the same network: dropped
+    queue_full: int = 0  # answered "rejected": the command was not applied
     sent: int = 0
     send_errors: int = 0
 
@@ -199,6 +204,11 @@ class LegacyAdapter:
         if isinstance(result, codec.DecodeError):
             c.malformed += 1
             return
+        if result.header.vehicle_id != self.ctx.vehicle_id:
+            # Several aircraft may share one network and one monitor: a command for another
+            # aircraft is not ours to execute, nor to answer (its addressee answers it).
+            c.other_vehicle += 1
+            return
         t = result.header.type_code
         pending = PendingCommand(result.payload, result.header.seq, addr)
         if isinstance(result.payload, codec.HorizonAttitude):
@@ -220,6 +230,7 @@ class LegacyAdapter:
             return
         if not queue.put(pending):
             c.queue_full += 1
+            self._ack(pending, AckResult.BAD_VALUE)  # every command is answered, even this one
             return
         c.accepted += 1
         self.manager.wake()
@@ -297,7 +308,7 @@ class LegacyAdapter:
         params = self.ctx.params
         try:
             for name, value in changes.items():
-                if value <= 0:
+                if value <= 0 and not (value == 0 and name in _ZERO_MEANS_UNLIMITED):
                     raise ParamError(name, "must be positive")
                 params.spec(name).validate(value)
         except ParamError:

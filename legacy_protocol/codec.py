@@ -1,6 +1,6 @@
 """Codec for the thesis's legacy UDP ground/aircraft protocol.
 
-The contract is /work/shared/specs/legacy-udp.md.  Every datagram is a 16-byte header followed by a
+The protocol, byte by byte, is documented in docs/legacy-protocol.md.  Every datagram is a 16-byte header followed by a
 fixed-size, little-endian, packed body chosen by the header's type byte.  Each body layout is
 declared exactly once, as a frozen dataclass whose field annotations carry the wire format
 (``Annotated[int, U32]``); the packing and unpacking code is derived from that declaration so the

@@ -7,8 +7,26 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
+
+# Everything the tests read is in tests/data (see tests/data/README.md for where each file came
+# from). A missing file is a failure with the path in the message, never a skip: a test that
+# silently skips would leave the claim it checks untested on the machine that lacks the file.
+DATA = Path(__file__).resolve().parent / "data"
+VECTORS = DATA / "vectors"
+HORIZON_DEV = DATA / "horizon-dev"
+
+
+def data_file(*parts: str) -> Path:
+    """Path of a file under tests/data, or a test failure naming the file that is missing."""
+    path = DATA.joinpath(*parts)
+    if not path.is_file():
+        pytest.fail(f"test data missing: {path.relative_to(DATA.parent.parent)} "
+                    "(it is tracked in git: restore it with `git checkout -- tests/data`)",
+                    pytrace=False)
+    return path
 
 
 def _fds() -> set[int]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from conftest import data_file, wait_for
 
 from companion.clock import Clock
 from companion.drivers.gps import GpsDriver
@@ -22,8 +22,6 @@ from companion.params import ParamRegistry
 from companion.sim.devices import GpsSim, ImuSim, ServoBoardSim
 from companion.state import ControlOutput
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
-
-VECTORS = Path(__file__).resolve().parents[2] / "shared" / "specs" / "vectors"
 
 
 class FakeDevice:
@@ -89,7 +87,7 @@ def imu_stream(n: int, seed: int = 1) -> list[bytes]:
 
 
 def test_imu_golden_capture_one_byte_at_a_time(imu_dev: FakeDevice) -> None:
-    data = (VECTORS / "imu-cycle.bin").read_bytes()
+    data = data_file("vectors", "imu-cycle.bin").read_bytes()
     drv = ImuDriver(str(imu_dev.link))
     items: list[object] = []
     drv.item_sink = items.append

@@ -240,7 +240,8 @@ def test_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None
     assert code == 0
     figures = json.loads(out.read_text())
     acc = figures["accuracy"]["c172p, still air"]
-    assert set(acc) == {"eskf", "vqf", "madgwick", "gps fix"}
+    assert set(acc) == {"eskf", "attitude", "vqf", "madgwick", "gps fix"}
+    assert 0.0 < acc["attitude"]["incl_rmse_deg"] < 90.0
     assert acc["eskf"]["incl_rmse_deg"] < acc["vqf"]["incl_rmse_deg"]
     assert acc["eskf"]["pd_failures"] == 0
     assert figures["timing"]["eskf"]["step_median_us"] > 0.0

@@ -1,4 +1,13 @@
-"""Identity, telemetry rates and commands against a running runtime, with a raw MAVLink client."""
+"""Identity, telemetry rates and commands with a raw MAVLink client, against a SyntheticVehicle.
+
+Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
+process. No drivers, estimator, control law or simulator run, and the parameters are only
+the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
+test's.
+
+Reboot and shutdown commands end the SyntheticVehicle's manager run, not a runtime process.
+"""
 
 from __future__ import annotations
 

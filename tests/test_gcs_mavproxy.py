@@ -1,4 +1,13 @@
-"""MAVProxy 1.8.75, run as a separate non-interactive process, against a running runtime."""
+"""MAVProxy 1.8.75, as a separate non-interactive process, against the bridge on a SyntheticVehicle.
+
+Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
+process. No drivers, estimator, control law or simulator run, and the parameters are only
+the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
+test's.
+
+MAVProxy against a whole `companion sim` flight is in test_gcs_clients_sim.py.
+"""
 
 from __future__ import annotations
 

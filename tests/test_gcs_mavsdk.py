@@ -1,4 +1,13 @@
-"""MAVSDK 4.1 (the native Python binding) against a running runtime over loopback UDP."""
+"""MAVSDK 4.1 (the native Python binding) against the bridge on a SyntheticVehicle, over UDP.
+
+Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
+process. No drivers, estimator, control law or simulator run, and the parameters are only
+the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
+test's.
+
+MAVSDK against a whole `companion sim` flight is in test_gcs_clients_sim.py.
+"""
 
 from __future__ import annotations
 

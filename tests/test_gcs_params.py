@@ -1,4 +1,11 @@
-"""The MAVLink parameter protocol against a running runtime, with a raw MAVLink 2 client."""
+"""The MAVLink parameter protocol with a raw MAVLink 2 client, against a SyntheticVehicle.
+
+Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
+process. No drivers, estimator, control law or simulator run, and the parameters are only
+the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
+test's.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,11 @@
-"""pymavlink's own client API (`mavutil`), as ground-station scripts use it, against the bridge."""
+"""pymavlink's own client API (`mavutil`), as ground-station scripts use it, against the bridge.
+
+Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
+process. No drivers, estimator, control law or simulator run, and the parameters are only
+the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
+test's.
+"""
 
 from __future__ import annotations
 

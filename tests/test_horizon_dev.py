@@ -1,31 +1,28 @@
 """The 108 real development frames: the robust method must hold its targets, the baseline is the
-reference it is measured against. Skipped when the data set is not beside the repository."""
+reference it is measured against (tests/data/horizon-dev, from the Horizon-UAV dataset)."""
 
 from __future__ import annotations
 
 import csv
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import data_file
 
 from horizon.baseline import BaselineDetector
 from horizon.geometry import OrientedLine, wrap_deg
 from horizon.robust import RobustDetector
 from horizon.synth import apply_disturbance
 
-DEV = Path(__file__).resolve().parents[2] / "shared" / "data" / "horizon-dev"
-
-pytestmark = pytest.mark.skipif(not (DEV / "gt.csv").is_file(), reason=f"no development data at {DEV}")
-
 
 @pytest.fixture(scope="module")
 def frames() -> list[tuple[np.ndarray, OrientedLine, str]]:
     out = []
-    with (DEV / "gt.csv").open(newline="") as f:
+    gt = data_file("horizon-dev", "gt.csv")
+    with gt.open(newline="") as f:
         for row in csv.DictReader(f):
-            img = cv2.imread(str(DEV / row["image"]))
+            img = cv2.imread(str(data_file("horizon-dev", row["image"])))
             assert img is not None, row["image"]
             h, w = img.shape[:2]
             truth = OrientedLine.from_points(

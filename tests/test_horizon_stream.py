@@ -8,11 +8,10 @@ import socket
 import struct
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_udp_port, wait_for
+from conftest import data_file, free_udp_port, wait_for
 
 from horizon.estimate import HorizonEstimate
 from horizon.geometry import OrientedLine
@@ -27,7 +26,6 @@ from horizon.stream import (
 )
 from horizon.synth import SceneSpec, render_scene
 
-VECTORS = Path(__file__).resolve().parents[2] / "shared" / "specs" / "vectors" / "legacy-udp.json"
 # the contract's HORIZON_ATTITUDE test vector (vehicle 7, seq 1132)
 VECTOR_HEX = "840724006c04000000f1536515cd5b0721b0323e4df30ebd6666663f00f153650065cd1d"
 
@@ -44,9 +42,8 @@ def test_pack_matches_the_contract_vector() -> None:
     assert data.hex() == VECTOR_HEX
 
 
-@pytest.mark.skipif(not VECTORS.is_file(), reason="contract vectors not beside the repository")
 def test_pack_matches_the_shared_vector_file() -> None:
-    vec = next(v for v in json.loads(VECTORS.read_text()) if v["type"] == 0x84)
+    vec = next(v for v in json.loads(data_file("vectors", "legacy-udp.json").read_text()) if v["type"] == 0x84)
     roll, pitch, quality, sec, nsec = vec["fields_in_table_order"]
     hdr = vec["header"]
     data = pack_horizon_attitude(hdr["seq"], hdr["vehicle"], hdr["tv_sec"] * 10**9 + hdr["tv_nsec"],

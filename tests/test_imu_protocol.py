@@ -3,9 +3,9 @@ from __future__ import annotations
 import json
 import math
 import struct
-from pathlib import Path
 
 import pytest
+from conftest import data_file
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -25,9 +25,8 @@ from companion.drivers.imu_protocol import (
     slow_block_words,
 )
 
-VECTORS = Path("/work/shared/specs/vectors")
-SPEC = json.loads((VECTORS / "devices.json").read_text())
-CYCLE_BIN = (VECTORS / "imu-cycle.bin").read_bytes()
+SPEC = json.loads(data_file("vectors", "devices.json").read_text())
+CYCLE_BIN = data_file("vectors", "imu-cycle.bin").read_bytes()
 FAST = SPEC["fast_values_quantised"]
 SLOW = SPEC["slow_values"]
 SLOW_BLOCK = bytes.fromhex(SPEC["slow_block_hex"])

@@ -6,10 +6,10 @@ import dataclasses
 import json
 import math
 import struct
-from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import data_file
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -29,7 +29,7 @@ from legacy_protocol.codec import (
     encode,
 )
 
-VECTORS_PATH = Path("/work/shared/specs/vectors/legacy-udp.json")
+VECTORS_PATH = data_file("vectors", "legacy-udp.json")
 VECTORS: list[dict[str, Any]] = json.loads(VECTORS_PATH.read_text())
 
 # The vector files list a lone "uint16 zero" reserved field as a value (0) but leave out the

@@ -14,6 +14,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import data_file
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -31,7 +32,7 @@ from companion.logs.records import (
     encode_marker,
 )
 
-VECTORS = Path("/work/shared/specs/vectors")
+VECTORS = data_file("vectors", "log-example.bin").parent
 T0 = 1_700_000_000 * 10**9
 _LIBC_NAME = ctypes.util.find_library("c")
 LIBC = ctypes.CDLL(_LIBC_NAME) if _LIBC_NAME else None

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import data_file
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -26,7 +27,7 @@ from companion.logs.records import (
     encode_marker,
 )
 
-VECTORS = Path("/work/shared/specs/vectors")
+VECTORS = data_file("vectors", "log-example.bin").parent
 T0 = 1_700_000_000 * 10**9
 
 
@@ -413,7 +414,7 @@ def test_fuzz_random_bytes(raw: bytes) -> None:
 
 
 _SAMPLE = sample_log()[0].bytes()
-_VECTOR = (VECTORS / "log-example.bin").read_bytes() if VECTORS.exists() else _SAMPLE
+_VECTOR = (VECTORS / "log-example.bin").read_bytes()
 
 
 @st.composite

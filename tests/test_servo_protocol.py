@@ -1,9 +1,9 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
+from conftest import data_file
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -21,7 +21,7 @@ from companion.drivers.servo_protocol import (
     pilot_switch_auto,
 )
 
-SPEC = json.loads(Path("/work/shared/specs/vectors/devices.json").read_text())
+SPEC = json.loads(data_file("vectors", "devices.json").read_text())
 CMD = SPEC["servo_command"]
 PILOT = SPEC["servo_pilot"]
 CMD_HEX = SPEC["servo_command_hex"]

@@ -26,11 +26,19 @@ def test_reboot_then_shutdown_over_mavlink(tmp_path: Path) -> None:
         assert hb is not None
         reboot = mavutil.mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN
 
+        def drain() -> None:
+            """Drop whatever is queued, so a late ACK of an earlier command is not read as ours."""
+            while gcs.recv_match(blocking=False) is not None:
+                pass
+
         def command(param1: float) -> int | None:
-            deadline = time.monotonic() + 20
+            # A retransmission reaching the restarted runtime would be a second reboot: wait long
+            # for the ACK (a loaded machine is slow) before sending again.
+            drain()
+            deadline = time.monotonic() + 30
             while time.monotonic() < deadline:
                 gcs.mav.command_long_send(gcs.target_system, 1, reboot, 0, param1, 0, 0, 0, 0, 0, 0)
-                ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=1)
+                ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)
                 if ack is not None and ack.command == reboot:
                     return int(ack.result)
             return None

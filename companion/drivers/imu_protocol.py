@@ -1,7 +1,7 @@
 """IMU wire protocol: 20-byte fast frames at 100 Hz and the 200-byte slow block they carry.
 
 Pure code (no I/O, no threads) so the driver thread, the simulator and the log tools share one
-reading of ``/work/shared/specs/devices.md``. The module also holds the resynchronising frame
+reading of the device contract (docs/devices.md). The module also holds the resynchronising frame
 scanner and the counters that the servo protocol reuses, because both devices frame the same way:
 two sync bytes, a fixed length, a trailing checksum.
 """

@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
+from companion.estimation.attitude import estimate_attitude
 from companion.estimation.fusion import EstimatorCore
 from companion.estimation.quat import (
     FloatArray,
@@ -77,6 +78,7 @@ __all__ = [
     "filter_errors",
     "outage_growth",
     "record_flight",
+    "run_attitude",
     "run_eskf",
     "run_madgwick",
     "run_vqf",
@@ -84,6 +86,8 @@ __all__ = [
 ]
 
 IMU_RATE_HZ = 100
+IMU_ONLY_FILTERS = ("attitude", "vqf", "madgwick")
+"""IMU-only references: the project's `estimate_attitude`, VQF 6-D and Madgwick, all defaults."""
 IMU_DT_S = 1.0 / IMU_RATE_HZ
 GPS_EVERY = 10
 """IMU ticks per GPS epoch (10 Hz), as in the SITL world."""
@@ -539,6 +543,15 @@ def _first_level_quat_zup(accel: FloatArray) -> FloatArray:
     return np.asarray(quat_multiply((0.0, 1.0, 0.0, 0.0), q_ned))
 
 
+def run_attitude(rec: SitlRecording) -> FloatArray:
+    """The project's IMU-only filter (`estimate_attitude`, defaults) on the decoded samples; NED.
+
+    It sees exactly what VQF and Madgwick see (gyro and accelerometer, nothing else), so its row
+    is the like-for-like comparison; the GPS/INS estimator also uses GPS and knows its latency."""
+    gyro, accel = rec.imu_arrays()
+    return estimate_attitude(gyro, accel, float(IMU_RATE_HZ))
+
+
 def run_vqf(rec: SitlRecording) -> FloatArray:
     """VQF, 6-D, default parameters, on the decoded samples: (N, 4) quaternions, z-up frame."""
     from vqf import VQF
@@ -726,7 +739,7 @@ def _f32(errors: FilterErrors) -> FilterErrors:
 def evaluate(
     spec: FlightSpec,
     variants: Mapping[str, EskfOptions] | None = None,
-    imu_only: Sequence[str] = ("vqf", "madgwick"),
+    imu_only: Sequence[str] = IMU_ONLY_FILTERS,
     compact: bool = True,
 ) -> RunResult:
     """Fly ``spec`` once and score every estimator variant and IMU-only reference on it.
@@ -737,9 +750,10 @@ def evaluate(
     """
     t0 = time.perf_counter()
     chosen = dict(variants) if variants is not None else {"eskf": EskfOptions()}
-    unknown = sorted(set(imu_only) - {"vqf", "madgwick"})
+    unknown = sorted(set(imu_only) - set(IMU_ONLY_FILTERS))
     if unknown:
-        raise ValueError(f"evaluate: unknown IMU-only filter(s) {unknown}; use vqf, madgwick")
+        raise ValueError(f"evaluate: unknown IMU-only filter(s) {unknown}; "
+                         f"use {', '.join(IMU_ONLY_FILTERS)}")
     rec = record_flight(spec)
     errors: dict[str, FilterErrors] = {}
     runs: dict[str, EskfRun] = {}
@@ -751,6 +765,9 @@ def evaluate(
             outage[name] = outage_growth(rec, err, opts.gps_outage_s)
         errors[name] = _f32(err) if compact else err
         runs[name] = _compact(run) if compact else run
+    if "attitude" in imu_only:
+        err = filter_errors(rec, run_attitude(rec))
+        errors["attitude"] = _f32(err) if compact else err
     if "vqf" in imu_only:
         err = filter_errors(rec, run_vqf(rec), zup=True)
         errors["vqf"] = _f32(err) if compact else err

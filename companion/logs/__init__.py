@@ -1,6 +1,6 @@
 """Flight logs: the binary record format of the thesis (Appendix B), its writer, reader and tools.
 
-The contract is /work/shared/specs/log-format.md; user documentation is docs/logs.md.
+The format, byte by byte, and the tools are documented in docs/logs.md.
 """
 
 from __future__ import annotations

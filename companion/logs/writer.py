@@ -48,6 +48,7 @@ from companion.logs.records import (
     encode_marker,
     split_time_ns,
 )
+from companion.osthread import set_native_name
 
 __all__ = ["LogService", "ThreadLog", "write_run_json"]
 
@@ -585,6 +586,7 @@ class LogService:
                 log.warning("log writer: closing %s: %s", sink.label, exc)
 
     def _run(self) -> None:
+        set_native_name("log-writer")
         period_s = self.flush_period_ms / 1000.0
         try:
             while True:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.clock import Clock
+from companion.osthread import set_native_name
 from companion.params import ParamRegistry, ParamSpec, int_param
 from companion.state import VehicleState
 
@@ -331,6 +332,7 @@ class ManagedThread:
 
     # ---------------------------------------------------------------- worker side
     def _run(self, stop: threading.Event) -> None:
+        set_native_name(self.name)
         clock = self.ctx.clock
         self.running = True
         tlog = self.tlog
