@@ -448,10 +448,12 @@ class LinkSender(ManagedThread):
             item = link.queue.get(self._wait_host_s)
         self.work_t0_ns = time.perf_counter_ns()  # step time counts the work, not the wait
         handled = 0
-        while item is not None and not self.stop_requested:
+        while item is not None:
+            # An item taken from the queue is sent even when a stop has just been asked for: it
+            # may be that very stop's COMMAND_ACK, and what is left stays queued for the exit.
             link.run_item(item)
             handled += 1
-            if handled >= ITEMS_PER_CYCLE:
+            if handled >= ITEMS_PER_CYCLE or self.stop_requested:
                 break
             item = link.queue.get_nowait()
         now = clock.monotonic_ns()

@@ -14,10 +14,12 @@ and the MAVLink side change the very same parameters.
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import logging
 import math
 import socket
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -43,6 +45,27 @@ def parse_hostport(text: str, default_port: int) -> tuple[str, int]:
         return host or "0.0.0.0", int(port)
     except ValueError:
         raise ValueError(f"expected HOST:PORT, got {text!r}") from None
+
+
+_BIND_PATIENCE_S = 1.0
+"""How long a busy command port is retried before giving up (see `_bind_patiently`)."""
+
+
+def _bind_patiently(sock: socket.socket, addr: tuple[str, int]) -> None:
+    """Bind, retrying for up to `_BIND_PATIENCE_S` while the port is in use.
+
+    After a reboot the previous runtime's receive thread may still be inside `recvfrom` on the
+    closed socket (its 0.1 s timeout has not run out), and the kernel keeps the port bound until
+    that call returns. A second runtime holding the port for good still fails, a second later."""
+    deadline = time.monotonic() + _BIND_PATIENCE_S
+    while True:
+        try:
+            sock.bind(addr)
+            return
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE or time.monotonic() >= deadline:
+                raise
+            time.sleep(0.02)
 
 
 _ZERO_MEANS_UNLIMITED = frozenset({"MGR_EXEC_TIME_S"})
@@ -137,7 +160,7 @@ class LegacyAdapter:
             # No SO_REUSEADDR: a second runtime on the same command port must fail here, loudly,
             # rather than silently share the port and receive half of the commands.
             try:
-                self.sock.bind((bind_host, listen_port))
+                _bind_patiently(self.sock, (bind_host, listen_port))
             except OSError as exc:
                 self.sock.close()
                 raise ConfigError(

@@ -17,7 +17,7 @@ def test_reboot_then_shutdown_over_mavlink(tmp_path: Path) -> None:
     port = free_udp_port()
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "companion", "sim", "--fast", "--log-dir", str(tmp_path / "f"),
+        [sys.executable, "-m", "companion", "-v", "sim", "--fast", "--log-dir", str(tmp_path / "f"),
          "--params-file", str(tmp_path / "p.parm"), "--mavlink", f"udpout:127.0.0.1:{port}",
          "--legacy-listen", str(free_udp_port()), "--legacy-dest", f"127.0.0.1:{free_udp_port()}"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -31,7 +31,7 @@ def test_reboot_then_shutdown_over_mavlink(tmp_path: Path) -> None:
             while gcs.recv_match(blocking=False) is not None:
                 pass
 
-        def command(param1: float) -> int | None:
+        def command(param1: float) -> int:
             # A retransmission reaching the restarted runtime would be a second reboot: wait long
             # for the ACK (a loaded machine is slow) before sending again.
             drain()
@@ -41,7 +41,9 @@ def test_reboot_then_shutdown_over_mavlink(tmp_path: Path) -> None:
                 ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)
                 if ack is not None and ack.command == reboot:
                     return int(ack.result)
-            return None
+            proc.terminate()
+            _out, err = proc.communicate(timeout=30)
+            raise AssertionError(f"no ACK to command {param1:g} in 30 s; runtime log:\n{err[-6000:]}")
 
         assert command(1) == mavutil.mavlink.MAV_RESULT_ACCEPTED
         # the runtime comes back: heartbeats again after the restart
@@ -55,7 +57,8 @@ def test_reboot_then_shutdown_over_mavlink(tmp_path: Path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+        if proc.returncode is None or not (proc.stdout is None or proc.stdout.closed):
+            proc.communicate()  # reaps it and closes its pipes, whichever way it ended
         gcs.close()
     fdir = next((tmp_path / "f").iterdir())
     imu = read_log(fdir / "imu.bin")

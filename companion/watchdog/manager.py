@@ -52,7 +52,8 @@ MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_RST_PER_S", 30, 1, 86_400, "s",
               "Restart intensity period, in seconds."),
     int_param("MGR_SHUTDOWN_MS", 500, 10, 60_000, "ms",
-              "How long a stopping thread may take before it is interrupted, then abandoned."),
+              "How long a stopping thread may take before it is interrupted, then abandoned "
+              "(host time: not scaled by the simulation's --speed)."),
 ]
 
 
@@ -273,7 +274,10 @@ class ThreadManager:
     def _stop_thread(self, t: ManagedThread, *, why: str) -> str:
         """Stop the worker safely and release its resources; returns how it ended:
         "stopped", "interrupted" or "abandoned"."""
-        host_timeout_s = self.ctx.clock.to_host_s(int(self.ctx.params.get("MGR_SHUTDOWN_MS")) / 1000)
+        # Host time, not the flight's clock: how long the OS takes to let a thread leave a blocking
+        # call does not shrink when the simulation runs faster (at --speed 5, a scaled 500 ms left
+        # 100 ms, and a loaded machine abandoned healthy threads that still held their ports).
+        host_timeout_s = int(self.ctx.params.get("MGR_SHUTDOWN_MS")) / 1000
         worker = t._worker
         outcome = "stopped"
         t._stop.set()
