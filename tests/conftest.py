@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import socket
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -86,3 +89,21 @@ def wait_for(predicate, timeout_s: float, interval_s: float = 0.005) -> bool:  #
         if time.monotonic() > deadline:
             return bool(predicate())
         time.sleep(interval_s)
+
+
+@contextlib.contextmanager
+def quiet_mavsdk() -> Iterator[None]:
+    """MAVSDK prints every retry; route it to logging so pytest shows it for failures only."""
+    from mavsdk import log_subscribe, log_unsubscribe  # only the MAVSDK tests pay for the import
+
+    mlog = logging.getLogger("mavsdk")
+
+    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
+        mlog.debug("%s %s (%s:%s)", level.name, message, file, line)
+        return True
+
+    log_subscribe(forward)
+    try:
+        yield
+    finally:
+        log_unsubscribe()

@@ -17,7 +17,6 @@ makes the attitude change within a few seconds of host time at --fast.
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 import signal
@@ -32,8 +31,8 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import free_udp_port, wait_for
-from mavsdk import ComponentType, Configuration, Mavsdk, log_subscribe, log_unsubscribe
+from conftest import free_udp_port, quiet_mavsdk, wait_for
+from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult
 from mavsdk.plugins.telemetry.telemetry import Telemetry
 
@@ -51,17 +50,9 @@ MAVPROXY_SYSID = (255, 230)
 
 
 @pytest.fixture(scope="module", autouse=True)
-def quiet_mavsdk() -> Iterator[None]:
-    """MAVSDK prints every retry; route it to logging so pytest shows it for failures only."""
-    mlog = logging.getLogger("mavsdk")
-
-    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
-        mlog.debug("%s %s (%s:%s)", level.name, message, file, line)
-        return True
-
-    log_subscribe(forward)
-    yield
-    log_unsubscribe()
+def _mavsdk_quiet() -> Iterator[None]:
+    with quiet_mavsdk():
+        yield
 
 
 # ---------------------------------------------------------------------------- the flight

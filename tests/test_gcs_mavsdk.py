@@ -11,7 +11,6 @@ MAVSDK against a whole `companion sim` flight is in test_gcs_clients_sim.py.
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 from collections.abc import Iterator
@@ -20,8 +19,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import free_udp_port, wait_for
-from mavsdk import ComponentType, Configuration, Mavsdk, log_subscribe, log_unsubscribe
+from conftest import free_udp_port, quiet_mavsdk, wait_for
+from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult
 from mavsdk.plugins.telemetry.telemetry import Telemetry
 
@@ -35,17 +34,9 @@ EXTRA = [
 
 
 @pytest.fixture(scope="module", autouse=True)
-def quiet_mavsdk() -> Iterator[None]:
-    """MAVSDK prints every retry; route it to logging so pytest shows it for failures only."""
-    mlog = logging.getLogger("mavsdk")
-
-    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
-        mlog.debug("%s %s (%s:%s)", level.name, message, file, line)
-        return True
-
-    log_subscribe(forward)
-    yield
-    log_unsubscribe()
+def _mavsdk_quiet() -> Iterator[None]:
+    with quiet_mavsdk():
+        yield
 
 
 @contextmanager
