@@ -234,6 +234,8 @@ def main(argv: list[str] | None = None) -> int:
 
     esk = bench_eskf(flight_s, flights)
     print(f"ESKF, {flights} fixed-wing flight(s) of {flight_s:.0f} s, GPS 10 Hz 0.15 s late")
+    print("  told what a flight would not tell it: each fix's exact age, the GPS error's exact std, "
+          "and IMU noise densities and bias walks equal to its defaults")
     print(f"  inclination RMSE      {esk['inclination_rmse_deg']:.3f} deg")
     print(f"  heading RMSE          {esk['heading_rmse_deg']:.3f} deg")
     print(f"  velocity RMSE         {esk['velocity_rmse_m_s']:.3f} m/s")
