@@ -36,7 +36,7 @@ from companion.estimation.quat import (  # noqa: E402
     inclination_error_rad,
     quat_to_rotmat,
 )
-from companion.estimation.synthetic import (  # noqa: E402
+from companion.evaluation.synthetic import (  # noqa: E402
     ImuErrors,
     Segment,
     add_imu_errors,

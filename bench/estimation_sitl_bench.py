@@ -6,7 +6,7 @@
     .venv/bin/python bench/estimation_sitl_bench.py --quick --json figures.json
     .venv/bin/python bench/estimation_sitl_bench.py --param GPS_VEL=0.1 --eskf init_pos_std_m=3
 
-Every flight is simulated offline by ``companion.estimation.sitl_eval``: JSBSim and the scripted
+Every flight is simulated offline by ``companion.evaluation.sitl``: JSBSim and the scripted
 pilot at 100 Hz, the IMU and GPS simulators' bytes (noise, turn-on bias and bias walk, a
 wandering GPS error, 50 ms GPS latency) decoded by the drivers' decoders, the estimator fed as
 its thread feeds it. One seed sets the pilot's jitter and every sensor error.
@@ -47,7 +47,7 @@ from scipy.stats import chi2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from companion.estimation.sitl_eval import (  # noqa: E402
+from companion.evaluation.sitl import (  # noqa: E402
     IMU_ONLY_FILTERS,
     EskfOptions,
     FlightSpec,

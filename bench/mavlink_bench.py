@@ -31,8 +31,8 @@ from pathlib import Path
 
 import psutil
 
-from companion.clock import Clock
-from companion.params import ParamRegistry, ParamSpec, float_param, int_param
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry, ParamSpec, float_param, int_param
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import param_codec
 from gcs_bridge.bridge import MavlinkBridge

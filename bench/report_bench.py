@@ -188,7 +188,7 @@ def bench_report(flight: Path, out_root: Path) -> list[tuple[str, float, float]]
 
 # ------------------------------------------------------------------------------ live view cost
 def _synthetic_threads() -> list[Any]:
-    from companion.state import EstimatorState, GpsFix, ImuSample, ServoState
+    from companion.core.state import EstimatorState, GpsFix, ImuSample, ServoState
     from companion.watchdog import ManagedThread
 
     class Producer(ManagedThread):
@@ -294,7 +294,7 @@ def _run_synthetic(seconds: float, with_view: bool, tmp: Path) -> dict[str, floa
 
 
 def _run_sim(seconds: float, with_view: bool, tmp: Path) -> dict[str, float]:
-    from companion.config import Config
+    from companion.core.config import Config
     from companion.liveview import LiveView
     from companion.sim.runner import FAST_SCALE, SimOptions, run_sim
 

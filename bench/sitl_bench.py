@@ -35,7 +35,7 @@ THESIS = {"imu": "10 ms mean, great variance and spikes", "gps": "140 ms instead
 def thread_cpu_s(pid: int) -> dict[int, tuple[str, float]]:
     """CPU seconds (user + system) of every thread of `pid`, by thread id, with its OS name.
 
-    Managed threads name themselves (companion.osthread), so `comm` is the thread's name; the
+    Managed threads name themselves (companion.core.osthread), so `comm` is the thread's name; the
     main thread, which runs the thread manager, carries the process's name."""
     tick = float(os.sysconf("SC_CLK_TCK"))
     out: dict[int, tuple[str, float]] = {}

@@ -18,8 +18,8 @@ import time
 
 import numpy as np
 
-from companion.clock import Clock
-from companion.params import ParamRegistry
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
 from companion.runtime import SWITCH_INTERVAL_S
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
 

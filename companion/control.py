@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from companion.params import ParamSpec, float_param, int_param
-from companion.state import ControlOutput, EstimatorState
+from companion.core.params import ParamSpec, float_param, int_param
+from companion.core.state import ControlOutput, EstimatorState
 from companion.watchdog.thread import ManagedThread
 
 MODE_OFF, MODE_LEVEL, MODE_ATTITUDE, MODE_LEVEL_ALT, MODE_HEADING_ALT = 0, 1, 2, 3, 4

@@ -9,8 +9,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from companion.config import Config
-from companion.params import ParamRegistry, format_value
+from companion.core.config import Config
+from companion.core.params import ParamRegistry, format_value
 
 
 def render(reg: ParamRegistry) -> str:

@@ -8,12 +8,10 @@ in simulation is what flies.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -21,10 +19,13 @@ from pathlib import Path
 from typing import Any
 
 from companion import __version__
-from companion.clock import Clock
-from companion.config import Config
-from companion.params import FileIssue, ParamRegistry, ParamSpec, int_param
-from companion.state import VehicleState
+from companion.control import ControlThread
+from companion.core.clock import Clock
+from companion.core.config import Config
+from companion.core.files import write_json_atomic
+from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
+from companion.core.state import VehicleState
+from companion.estimation.thread import EstimatorThread
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
@@ -54,6 +55,10 @@ def new_flight_dir(root: Path, *, suffix: str = "") -> Path:
     raise RuntimeError(f"cannot create a flight directory under {root}")
 
 
+BridgeFactory = Callable[[RuntimeContext, ThreadManager], Any]
+"""Makes a bridge for a runtime being built; the bridge may add threads to the manager."""
+
+
 @dataclass
 class RuntimeOptions:
     """What the command line adds to the configuration for one run."""
@@ -66,6 +71,9 @@ class RuntimeOptions:
     clock: Clock = field(default_factory=Clock)
     dry: bool = False  # build only (parameter listing, docs): no files, no sockets
     extra_run_info: dict[str, Any] = field(default_factory=dict)
+    extra_bridges: list[BridgeFactory] = field(default_factory=list)
+    """Built after the MAVLink and legacy bridges, each with (ctx, manager): how the layers above
+    the runtime (the live view) attach without the runtime importing them. Not built when dry."""
 
 
 def build_threads(cfg: Config) -> list[ManagedThread]:
@@ -88,19 +96,9 @@ def build_threads(cfg: Config) -> list[ManagedThread]:
 def build_computation(opts: RuntimeOptions) -> list[ManagedThread]:
     threads: list[ManagedThread] = []
     if opts.estimator:
-        try:
-            from companion.estimation.thread import EstimatorThread
-        except ImportError:
-            log.warning("estimator thread not available in this build")
-        else:
-            threads.append(EstimatorThread())
+        threads.append(EstimatorThread())
     if opts.control:
-        try:
-            from companion.control import ControlThread
-        except ImportError:
-            log.warning("control thread not available in this build")
-        else:
-            threads.append(ControlThread())
+        threads.append(ControlThread())
     return threads
 
 
@@ -165,11 +163,9 @@ class Runtime:
             self.bridges.append(LegacyAdapter(
                 self.ctx, self.manager, dest=cfg.legacy.dest, listen_port=cfg.legacy.listen,
                 allow=list(cfg.legacy.allow), bind_host=cfg.legacy.bind, listen=not dry))
-        if (cfg.rerun.enabled or cfg.rerun.save) and not dry:
-            from companion.liveview import LiveView
-
-            self.bridges.append(LiveView(self.ctx, self.manager, spawn=cfg.rerun.enabled,
-                                         save_path=Path(cfg.rerun.save) if cfg.rerun.save else None))
+        if not dry:
+            for make in self.opts.extra_bridges:
+                self.bridges.append(make(self.ctx, self.manager))
 
     # ------------------------------------------------------------------ running
     def run_info(self) -> dict[str, Any]:
@@ -293,24 +289,3 @@ def status_line(manager: ThreadManager) -> str:
     return f"t={st.elapsed_ms / 1000:7.1f}s " + "  ".join(parts)
 
 
-def every(period_s: float, fn: Callable[[], None]) -> Callable[[], None]:
-    """Wrap `fn` so a manager tick hook calls it at most once per host period."""
-    last = [0.0]
-
-    def hook() -> None:
-        now = time.monotonic()
-        if now - last[0] >= period_s:
-            last[0] = now
-            fn()
-
-    return hook
-
-
-def dump_json(obj: Any) -> str:
-    return json.dumps(obj, indent=2, sort_keys=True, default=str)
-
-
-def write_json_atomic(path: Path, obj: Any) -> None:
-    from companion.params import atomic_write_text
-
-    atomic_write_text(path, dump_json(obj) + "\n")

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from companion.config import ConfigError
+from companion.core.config import ConfigError
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import status
 from gcs_bridge.commands import CommandHandler, LoggingControl

@@ -11,7 +11,7 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from companion.params import ParamSpec, float_param, int_param
+from companion.core.params import ParamSpec, float_param, int_param
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge.dialect import COMPONENT_ID, Identity
 

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from companion.state import HorizonMeasurement
+from companion.core.state import HorizonMeasurement
 from gcs_bridge import ftp, param_codec, status
 from gcs_bridge.commands import CommandHandler
 from gcs_bridge.core import BridgeCore

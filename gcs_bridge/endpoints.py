@@ -20,7 +20,7 @@ import math
 import os
 from dataclasses import dataclass, field
 
-from companion.config import ConfigError
+from companion.core.config import ConfigError
 from gcs_bridge.dialect import message_id
 
 DEFAULT_ENDPOINT = "udpout:127.0.0.1:14550"

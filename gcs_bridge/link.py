@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from companion.sync import MessageQueue
+from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
 from gcs_bridge.core import BridgeCore

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import struct
 
-from companion.params import ParamSpec, ParamType
+from companion.core.params import ParamSpec, ParamType
 from gcs_bridge.dialect import mavlink
 
 T_UINT8 = mavlink.MAV_PARAM_TYPE_UINT8

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from companion.params import ParamError, ParamSpec
+from companion.core.params import ParamError, ParamErrorKind, ParamSpec
 from gcs_bridge import param_codec
 from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import mavlink
@@ -93,11 +93,9 @@ class ParamProtocol:
             return SetOutcome(name, index, False, reason=exc.reason, error=code)
         before = self.registry.get(name)
         try:
-            if name == "MGR_WDG_GRAN_MS":  # the same cross-check as the legacy command
-                self.core.manager.validate_granularity(int(value))
-            after = self.registry.set(name, value)
+            after = self.registry.set(name, value)  # every rule between parameters applies here
         except ParamError as exc:
-            return SetOutcome(name, index, False, reason=exc.reason, error=_error_code(exc.reason))
+            return SetOutcome(name, index, False, reason=exc.reason, error=_ERROR_CODES[exc.kind])
         log.info("parameter %s set to %s from MAVLink", name, after)
         return SetOutcome(name, index, True, changed=(after != before),
                           reason="takes effect at the next start" if spec.reboot_required else "")
@@ -106,11 +104,12 @@ class ParamProtocol:
         return self.registry.spec(name)
 
 
-def _error_code(reason: str) -> int:
-    if reason.startswith("read-only"):
-        return int(mavlink.MAV_PARAM_ERROR_READ_ONLY)
-    if reason.startswith("wrong type"):
-        return PARAM_ERROR_TYPE_MISMATCH
-    if reason.startswith("unknown"):
-        return int(mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)
-    return int(mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE)
+_ERROR_CODES = {
+    ParamErrorKind.UNKNOWN: int(mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST),
+    ParamErrorKind.READ_ONLY: int(mavlink.MAV_PARAM_ERROR_READ_ONLY),
+    ParamErrorKind.WRONG_TYPE: PARAM_ERROR_TYPE_MISMATCH,
+    ParamErrorKind.OUT_OF_RANGE: int(mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE),
+    ParamErrorKind.CONFLICT: int(mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE),
+}
+"""The registry's refusal kinds in MAVLink's PARAM_ERROR terms (a conflict with another
+parameter has no code of its own; the reason text goes out in the STATUSTEXT)."""

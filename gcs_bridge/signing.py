@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion.config import ConfigError
+from companion.core.config import ConfigError
 from gcs_bridge.dialect import mavlink
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from companion import __version__
-from companion.state import ServoState
+from companion.core.state import ServoState
 from companion.watchdog import ThreadStatus
 from gcs_bridge.core import (
     THREAD_CONTROL,

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from companion.sync import WaitableSlot
+from companion.core.sync import WaitableSlot
 from gcs_bridge import status, telemetry
 from gcs_bridge.core import (
     THREAD_ESTIMATOR,

@@ -1,6 +1,6 @@
 """State slots to MAVLink telemetry: the only place SI units become MAVLink's scaled integers.
 
-Each builder reads one snapshot (frozen dataclasses from `companion.state`) and returns the
+Each builder reads one snapshot (frozen dataclasses from `companion.core.state`) and returns the
 messages for it, or nothing when the data is not there yet. Missing values become the field's
 "unknown" marker (UINT16_MAX, NaN, ...) rather than a plausible-looking zero.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
-from companion.geo import NedFrame
-from companion.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.core.geo import NedFrame
+from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
 from gcs_bridge.core import INT16_MAX, UINT16_MAX, BridgeCore, clamp_int, nan_if_none
 from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.dialect import mavlink

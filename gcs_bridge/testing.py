@@ -20,9 +20,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from companion.clock import Clock
-from companion.params import ParamRegistry, ParamSpec
-from companion.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry, ParamSpec
+from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink

@@ -12,8 +12,9 @@ import csv
 import logging
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,8 +29,15 @@ log = logging.getLogger(__name__)
 __all__ = ["add_commands"]
 
 
-def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Add ``detect``, ``stream`` and ``synth`` to the ``companion horizon`` group."""
+def add_commands(sub: argparse._SubParsersAction,  # type: ignore[type-arg]
+                 rerun_frames: Callable[..., Any] | None = None) -> None:
+    """Add ``detect``, ``stream`` and ``synth`` to the ``companion horizon`` group.
+
+    `rerun_frames` makes the viewer for ``stream --rerun``: a callable
+    ``(spawn=bool, save_path=Path | None)`` returning an object called as
+    ``viewer(image, estimate, t_ns)`` with a ``close()``. The companion's CLI passes its live-view
+    adapter; without one, ``--rerun`` is refused with a message (this package stays free of the
+    companion runtime)."""
     det = sub.add_parser(
         "detect",
         help="find the horizon in images, folders, videos or a camera; write CSV and overlays",
@@ -69,7 +77,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
                     help="show the frames and the detected horizon in a spawned rerun viewer")
     st.add_argument("--rerun-save", metavar="PATH",
                     help="write the frames and the detected horizon to a rerun .rrd file")
-    st.set_defaults(func=_cmd_stream)
+    st.set_defaults(func=_cmd_stream, rerun_frames=rerun_frames)
 
     sy = sub.add_parser(
         "synth",
@@ -254,10 +262,14 @@ def _cmd_stream(args: argparse.Namespace) -> int:
 
     viewer = None
     if args.rerun or args.rerun_save:
-        from horizon.rerun_frames import RerunFrames
-
+        make_viewer = getattr(args, "rerun_frames", None)
+        if make_viewer is None:
+            for close in closers:
+                close()
+            return _fail("--rerun/--rerun-save: no rerun viewer adapter (run it as `companion "
+                         "horizon stream`)")
         try:
-            viewer = RerunFrames(spawn=args.rerun,
+            viewer = make_viewer(spawn=args.rerun,
                                  save_path=Path(args.rerun_save) if args.rerun_save else None)
         except Exception as exc:  # rerun raises several kinds for a bad path or no viewer
             for close in closers:

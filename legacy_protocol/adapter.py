@@ -24,10 +24,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from companion.config import ConfigError
-from companion.params import ParamError
-from companion.state import HorizonMeasurement
-from companion.sync import MessageQueue
+from companion.core.config import ConfigError
+from companion.core.params import ParamError
+from companion.core.state import HorizonMeasurement
+from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, ThreadManager
 from legacy_protocol import codec
 from legacy_protocol.codec import AckResult, MsgType
@@ -277,7 +277,6 @@ class LegacyAdapter:
 
     def _apply(self, cmd: PendingCommand) -> None:
         p = cmd.payload
-        params = self.ctx.params
         if isinstance(p, codec.SetThreadParams):
             t = self.manager.find(p.thread_id)
             if t is None:
@@ -288,11 +287,6 @@ class LegacyAdapter:
                 changes[f"{t.param_prefix}_WDG_MS"] = p.watchdog_period_ms
             if p.message_period_ms != codec.UNCHANGED:
                 changes[f"{t.param_prefix}_MSG_MS"] = p.message_period_ms
-            gran = int(params.get("MGR_WDG_GRAN_MS"))
-            wdg = changes.get(f"{t.param_prefix}_WDG_MS")
-            if wdg is not None and wdg < gran:
-                self._ack(cmd, AckResult.BAD_VALUE)
-                return
             self._set_all(cmd, changes)
         elif isinstance(p, codec.SetManagerParams):
             changes = {}
@@ -301,11 +295,6 @@ class LegacyAdapter:
             if p.status_period_ms != codec.UNCHANGED:
                 changes["MGR_STATUS_MS"] = p.status_period_ms
             if p.granularity_ms != codec.UNCHANGED:
-                try:
-                    self.manager.validate_granularity(p.granularity_ms)
-                except ParamError:
-                    self._ack(cmd, AckResult.BAD_VALUE)
-                    return
                 changes["MGR_WDG_GRAN_MS"] = p.granularity_ms
             self._set_all(cmd, changes)
         elif isinstance(p, codec.Stop):
@@ -327,18 +316,17 @@ class LegacyAdapter:
             )
 
     def _set_all(self, cmd: PendingCommand, changes: dict[str, int]) -> None:
-        """All or nothing: validate every value first, so a refused command changes nothing."""
-        params = self.ctx.params
+        """All or nothing, through the registry's one path (its rules between parameters
+        included), so a refused command changes nothing."""
         try:
             for name, value in changes.items():
                 if value <= 0 and not (value == 0 and name in _ZERO_MEANS_UNLIMITED):
                     raise ParamError(name, "must be positive")
-                params.spec(name).validate(value)
-        except ParamError:
+            self.ctx.params.set_many(changes)
+        except ParamError as exc:
+            log.info("legacy command refused: %s", exc)
             self._ack(cmd, AckResult.BAD_VALUE)
             return
-        for name, value in changes.items():
-            params.set(name, value)
         self._ack(cmd, AckResult.ACCEPTED)
 
     # ------------------------------------------------------------------ send side

@@ -6,6 +6,9 @@ a terminal: the watchdog page shows each thread's four status LEDs and editable 
 pages show the latest values with sparklines of a short history, and a banner says plainly when
 the link has gone quiet.  All networking lives in :mod:`legacy_protocol.monitor_link`; the app
 drains it from a timer, so the state it reads is never touched by another thread.
+
+Size: one Textual application (its pages, widgets and their styles); the protocol work lives
+in monitor_link.py.
 """
 
 from __future__ import annotations

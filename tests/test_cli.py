@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from companion.cli import main
-from companion.config import Config, ConfigError, apply_override, load_config
+from companion.core.config import Config, ConfigError, apply_override, load_config
 from companion.docgen import render
 from companion.runtime import declared_registry
 

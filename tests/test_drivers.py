@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from conftest import data_file, wait_for
 
-from companion.clock import Clock
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
+from companion.core.state import ControlOutput
 from companion.drivers.gps import GpsDriver
 from companion.drivers.imu import ImuDriver
 from companion.drivers.servo import ServoDriver
-from companion.params import ParamRegistry
 from companion.sim.devices import GpsSim, ImuSim, ServoBoardSim
-from companion.state import ControlOutput
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from companion.estimation.attitude import AttitudeFilter, estimate_attitude
 from companion.estimation.quat import inclination_error_rad
-from companion.estimation.synthetic import (
+from companion.evaluation.synthetic import (
     ImuErrors,
     Segment,
     add_imu_errors,

@@ -21,7 +21,7 @@ from companion.estimation.quat import (
     quat_to_rotvec,
     wrap_pi,
 )
-from companion.estimation.synthetic import (
+from companion.evaluation.synthetic import (
     GpsRecording,
     ImuErrors,
     ImuRecording,

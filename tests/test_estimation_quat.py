@@ -30,7 +30,7 @@ from companion.estimation.quat import (
     skew,
     wrap_pi,
 )
-from companion.estimation.synthetic import (
+from companion.evaluation.synthetic import (
     ImuErrors,
     Segment,
     add_imu_errors,

@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.estimation.sitl_eval import (
+from companion.core.state import ImuSample, VehicleState
+from companion.core.sync import MessageQueue
+from companion.estimation.thread import EstimatorThread
+from companion.evaluation.sitl import (
     EskfAsThread,
     EskfOptions,
     EskfRun,
@@ -28,9 +31,6 @@ from companion.estimation.sitl_eval import (
     run_vqf,
     steady_turn_mask,
 )
-from companion.estimation.thread import EstimatorThread
-from companion.state import ImuSample, VehicleState
-from companion.sync import MessageQueue
 from companion.watchdog.thread import RuntimeContext
 
 WARMUP_S = 30.0

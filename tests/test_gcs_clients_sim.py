@@ -39,8 +39,8 @@ from mavsdk.plugins.telemetry.telemetry import Telemetry
 # the MAVProxy driver (commands on stdin, output collected line by line) is shared
 from test_gcs_mavproxy import MavProxy, words
 
+from companion.core.params import parse_param_file, to_float32
 from companion.logs import read_log
-from companion.params import parse_param_file, to_float32
 
 FLIGHT_S = 300  # programmed duration, simulated seconds (60 s of host time at --fast)
 START_TIMEOUT_S = 60.0  # JSBSim and the runtime start in about 1.5 s; a loaded machine is slower

@@ -11,7 +11,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.generator.mavcrc import x25crc
 
-from companion.params import float_param, int_param
+from companion.core.params import float_param, int_param
 from gcs_bridge import ftp, param_codec
 from gcs_bridge.dialect import (
     MSG_ID_PROTOCOL_VERSION,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from conftest import free_udp_port, wait_for
 
-from companion.params import float_param, int_param
+from companion.core.params import float_param, int_param
 from gcs_bridge.signing import new_key_file
 from gcs_bridge.testing import SyntheticVehicle
 

@@ -24,7 +24,7 @@ from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult
 from mavsdk.plugins.telemetry.telemetry import Telemetry
 
-from companion.params import ParamType, float_param, int_param, to_float32
+from companion.core.params import ParamType, float_param, int_param, to_float32
 from gcs_bridge.testing import ORIGIN, SyntheticVehicle, circle_state
 
 EXTRA = [

@@ -18,7 +18,7 @@ from typing import Any
 
 from conftest import free_udp_port, wait_for
 
-from companion.params import ParamType, float_param, int_param, to_float32
+from companion.core.params import ParamType, float_param, int_param, to_float32
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.testing import MiniGcs, SyntheticVehicle
@@ -138,7 +138,11 @@ def test_refused_sets_answer_old_value_reason_and_error() -> None:
             # the watchdog granularity may not exceed the shortest watchdog period (500 ms)
             ("MGR_WDG_GRAN_MS", struct.pack("<i", 900), param_codec.T_INT32, "exceeds",
              mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE),
+            # and no watchdog period may be shorter than the granularity (set to 50 ms below):
+            # the rule the legacy protocol always had, now the registry's, so MAVLink refuses it
+            ("IMU_WDG_MS", struct.pack("<i", 20), param_codec.T_INT32, "below MGR_WDG_GRAN_MS", mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE),
         ]
+        v.params.set("MGR_WDG_GRAN_MS", 50)
         for name, raw, ptype, reason, code in cases:
             before = v.params.get(name) if name in v.params else None
             param_set(gcs, name, raw, ptype)

@@ -19,7 +19,7 @@ import pytest
 from conftest import free_udp_port, wait_for
 from pymavlink import mavutil
 
-from companion.params import float_param
+from companion.core.params import float_param
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.signing import SignatureChecker, key_from_text, new_key_file, signing_timestamp

@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from companion.clock import Clock
-from companion.params import ParamRegistry
-from companion.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
+from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge import status, streams, telemetry
 from gcs_bridge.core import BRIDGE_PARAMS, UINT16_MAX, BridgeCore

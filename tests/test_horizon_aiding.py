@@ -7,8 +7,8 @@ import threading
 
 from conftest import free_udp_port, wait_for
 
-from companion.clock import Clock
-from companion.params import ParamRegistry
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import MavlinkBridge
 from horizon.estimate import HorizonEstimate

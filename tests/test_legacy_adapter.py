@@ -10,8 +10,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from companion.clock import Clock
-from companion.params import ParamRegistry
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
 from companion.watchdog import RuntimeContext, ThreadManager
 from legacy_protocol import codec
 from legacy_protocol.adapter import LegacyAdapter

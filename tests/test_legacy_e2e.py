@@ -199,9 +199,9 @@ def test_refused_source_is_dropped(tmp_path: Path) -> None:
 def test_a_second_runtime_on_the_same_command_port_is_refused() -> None:
     import pytest
 
-    from companion.clock import Clock
-    from companion.config import ConfigError
-    from companion.params import ParamRegistry
+    from companion.core.clock import Clock
+    from companion.core.config import ConfigError
+    from companion.core.params import ParamRegistry
     from companion.watchdog import RuntimeContext, ThreadManager
     from legacy_protocol.adapter import LegacyAdapter
 

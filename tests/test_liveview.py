@@ -13,13 +13,13 @@ import pytest
 import rerun as rr
 from conftest import free_tcp_port
 
-from companion.config import Config, ConfigError
+from companion.cli import main as companion_main
+from companion.core.config import Config, ConfigError
+from companion.core.state import EstimatorState, GpsFix, ImuSample, ServoState
 from companion.liveview import LiveView, LiveViewThread, ViewerError, open_recording, replay_flight
 from companion.liveview import entities as E
 from companion.liveview.tail import LogTail
 from companion.report import load_flight
-from companion.report.cli import main as logs_main
-from companion.state import EstimatorState, GpsFix, ImuSample, ServoState
 from companion.watchdog import RuntimeContext, ThreadManager
 
 FLIGHT_S = 20.0
@@ -154,15 +154,15 @@ def test_view_cli_and_a_partial_flight(live: LiveRun, tmp_path: Path,
     d.mkdir()
     (d / "imu.bin").write_bytes((live.flight_dir / "imu.bin").read_bytes())
     out = tmp_path / "view.rrd"
-    assert logs_main(["view", str(d), "--rerun-save", str(out)]) == 0
+    assert companion_main(["logs", "view", str(d), "--rerun-save", str(out)]) == 0
     captured = capsys.readouterr()
     assert "replayed" in captured.out and "gps.bin is missing" in captured.err
     rows = rows_per_entity(out)
     imu = load_flight(d).block("imu", 1)
     assert imu is not None and rows["/" + E.IMU_RATES] == imu.size > 100
     assert "/" + E.GPS_SATS not in rows
-    assert logs_main(["view", str(tmp_path / "nowhere"), "--rerun-save", str(out)]) == 1
-    assert logs_main(["view", str(d), "--rerun-save", str(tmp_path / "no" / "x.rrd")]) == 1
+    assert companion_main(["logs", "view", str(tmp_path / "nowhere"), "--rerun-save", str(out)]) == 1
+    assert companion_main(["logs", "view", str(d), "--rerun-save", str(tmp_path / "no" / "x.rrd")]) == 1
     assert "does not exist" in capsys.readouterr().err
 
 

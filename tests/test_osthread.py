@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 from conftest import wait_for
 
-from companion.clock import Clock
-from companion.osthread import set_native_name
-from companion.params import ParamRegistry
+from companion.core.clock import Clock
+from companion.core.osthread import set_native_name
+from companion.core.params import ParamRegistry
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux thread names")

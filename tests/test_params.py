@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.params import (
+from companion.core.params import (
     ParamError,
     ParamRegistry,
     ParamSpec,
@@ -135,7 +135,7 @@ def test_sigkill_during_writes_never_leaves_a_torn_file(tmp_path: Path) -> None:
     script = textwrap.dedent(f"""
         import sys
         from pathlib import Path
-        from companion.params import ParamRegistry, int_param
+        from companion.core.params import ParamRegistry, int_param
         reg = ParamRegistry()
         reg.declare_all([int_param(f"T_P{{i:03d}}", 0, 0, 10**9) for i in range(300)])
         reg.attach_file(Path({str(path)!r}))

@@ -12,7 +12,7 @@ from functools import cache
 
 import pytest
 
-from companion.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
+from companion.core.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
 from companion.sim.flight import (
     AIRCRAFT,
     DEFAULT_AIRCRAFT,

@@ -12,8 +12,8 @@ import pytest
 import serial
 from conftest import wait_for
 
-from companion.clock import Clock
-from companion.params import ParamRegistry
+from companion.core.clock import Clock
+from companion.core.params import ParamError, ParamErrorKind, ParamRegistry
 from companion.watchdog import (
     EventKind,
     ManagedThread,
@@ -273,3 +273,52 @@ def test_hundred_forced_restarts_leak_nothing() -> None:
             snap_10.filter_traces(only_runtime), "filename")
     )
     assert growth < 18_000, f"runtime memory grew {growth} bytes over 90 restarts"
+
+
+class _SlowToStop(ManagedThread):
+    """Its step takes 600 ms of C-level sleep; it honours the stop event only between steps."""
+
+    def step(self) -> bool:
+        time.sleep(0.6)
+        return True
+
+
+@pytest.mark.parametrize("own_timeout_ms,expect", [(None, "abandoned"), (2000, "stopped")])
+def test_a_threads_own_shutdown_timeout_overrides_the_managers(
+    own_timeout_ms: int | None, expect: str
+) -> None:
+    """MGR_SHUTDOWN_MS is 100 ms here: a thread that needs longer to stop says so, and gets it."""
+    t = _SlowToStop("slow", thread_id=1, period_ms=10.0, watchdog_ms=5000,
+                    shutdown_timeout_ms=own_timeout_ms)
+    mgr = make_manager(t)
+    mgr.start()
+    try:
+        assert wait_for(lambda: t.cycles >= 1, 5.0)
+        time.sleep(0.05)  # inside the next step's sleep, where neither stop nor interrupt lands
+        assert mgr._stop_thread(t, why="test") == expect
+    finally:
+        mgr.request_stop()
+        mgr.shutdown()
+    if expect == "abandoned":
+        assert wait_for(lambda: not any(th.name == "managed-slow" and th.is_alive()
+                                        for th in threading.enumerate()), 3.0)
+
+
+def test_watchdog_periods_and_granularity_are_one_rule_for_every_source() -> None:
+    """The registry refuses both sides of the granularity rule, whoever sets the value."""
+    t = _SlowToStop("imu", thread_id=1, period_ms=10.0, watchdog_ms=500)
+    mgr = make_manager(t, MGR_WDG_GRAN_MS=50)
+    params = mgr.ctx.params
+    with pytest.raises(ParamError) as exc:
+        params.set("IMU_WDG_MS", 20)
+    assert exc.value.kind is ParamErrorKind.CONFLICT and "MGR_WDG_GRAN_MS" in exc.value.reason
+    with pytest.raises(ParamError) as exc:
+        params.set("MGR_WDG_GRAN_MS", 600)
+    assert exc.value.kind is ParamErrorKind.CONFLICT and "500 ms" in exc.value.reason
+    # one request sees its own values: both change together, or neither does
+    params.set_many({"IMU_WDG_MS": 1000, "MGR_WDG_GRAN_MS": 600})
+    assert (params.get("IMU_WDG_MS"), params.get("MGR_WDG_GRAN_MS")) == (1000, 600)
+    with pytest.raises(ParamError):
+        params.set_many({"IMU_WDG_MS": 300, "MGR_STATUS_MS": 2000})
+    assert (params.get("IMU_WDG_MS"), params.get("MGR_STATUS_MS")) == (1000, 1000)
+    mgr.shutdown()

@@ -11,10 +11,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from companion.core.params import ParamSpec, int_param
+from companion.core.state import GpsFix
 from companion.drivers.gps_protocol import GpsSolution, NmeaDecoder
 from companion.drivers.serial_device import SerialDevice
-from companion.params import ParamSpec, int_param
-from companion.state import GpsFix
 
 FMT_SOLUTION = 1
 FMT_RAW = 2

@@ -11,6 +11,9 @@ the contract (speed in knots, altitude above the ellipsoid, a firmware tag, not 
 Altitudes: ``GpsSolution.alt_m`` is above mean sea level (GGA). ``$PASHR,POS`` reports height
 above the WGS84 ellipsoid (kept in ``alt_ellipsoid_m``); it is turned into MSL only with a geoid
 separation from a GGA, of this epoch or the last one that had it.
+
+Size: six sentence parsers, the epoch assembly and the encoder the simulator uses, all
+bound to one reading of the NMEA and Ashtech formats.
 """
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from companion.core.params import ParamSpec, int_param
+from companion.core.state import ImuSample, ImuSlowSample
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
-from companion.params import ParamSpec, int_param
-from companion.state import ImuSample, ImuSlowSample
 
 FMT_FAST = 1
 FMT_SLOW = 2

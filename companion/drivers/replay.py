@@ -16,7 +16,8 @@ import tty
 from collections.abc import Callable
 from typing import Any
 
-from companion.clock import Clock
+from companion.core.clock import Clock
+from companion.core.params import ParamRegistry
 from companion.drivers.gps import GpsDriver
 from companion.drivers.gps_protocol import GpsSolution
 from companion.drivers.imu import ImuDriver
@@ -24,7 +25,6 @@ from companion.drivers.imu_protocol import ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
 from companion.drivers.servo import ServoDriver
 from companion.drivers.servo_protocol import PilotFrame
-from companion.params import ParamRegistry
 from companion.watchdog import RuntimeContext, ThreadManager
 
 KINDS = ("imu", "gps", "servo")

@@ -10,6 +10,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from companion.core.params import ParamSpec, int_param
+from companion.core.state import ControlOutput, ServoState
 from companion.drivers.serial_device import SerialDevice
 from companion.drivers.servo_protocol import (
     CHANNELS,
@@ -18,8 +20,6 @@ from companion.drivers.servo_protocol import (
     ServoCommand,
     encode_command,
 )
-from companion.params import ParamSpec, int_param
-from companion.state import ControlOutput, ServoState
 
 FMT_EXCHANGE = 1
 CONTROL_FRESH_S = 0.1  # older control output is not sent: the board falls back to the pilot

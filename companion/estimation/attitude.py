@@ -29,6 +29,9 @@ is a small error-state Kalman filter instead:
 
 Use :class:`AttitudeFilter` on board (one :meth:`~AttitudeFilter.update` per IMU sample) and
 :func:`estimate_attitude` for recordings.
+
+Size: one filter (state, predict, update, covariance care) and its batch helper; splitting
+the filter's equations across files would hide how they fit together.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ uncertainty when the aircraft is evidently not still), the IMU period from the f
 the GPS measurement model (position in the shared NED frame, standard deviations from HDOP, GST
 and the parameters, an unmeasured vertical velocity left unconstrained) and its latency, and the
 horizon weighting. The estimator thread wraps it with queues, slots and logs; the SITL
-evaluation (`sitl_eval`) drives it directly, so what is benchmarked is what flies.
+evaluation (`companion.evaluation.sitl`) drives it directly, so what is benchmarked is what flies.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.core.geo import NedFrame
+from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.estimation.eskf import Eskf, UpdateResult
-from companion.geo import NedFrame
-from companion.state import GpsFix, HorizonMeasurement, ImuSample
 
 log = logging.getLogger(__name__)
 

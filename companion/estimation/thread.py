@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.core.params import ParamSpec, float_param, int_param
+from companion.core.state import EstimatorState
 from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL, Eskf
 from companion.estimation.fusion import EstimatorCore
-from companion.params import ParamSpec, float_param, int_param
-from companion.state import EstimatorState
 from companion.watchdog.thread import ManagedThread
 
 log = logging.getLogger(__name__)

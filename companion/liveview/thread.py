@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from companion.config import ConfigError
-from companion.geo import NedFrame
+from companion.core.config import ConfigError
+from companion.core.geo import NedFrame
+from companion.core.sync import MessageQueue
 from companion.liveview import entities as E
 from companion.liveview.sink import Recording, ViewerError, open_recording
 from companion.liveview.tail import LogTail
 from companion.report.analysis import quat_xyzw
-from companion.sync import MessageQueue
 from companion.watchdog import ManagedThread, RestartType, RuntimeContext, ThreadManager
 
 __all__ = ["LIVEVIEW_THREAD_ID", "LiveView", "LiveViewThread"]

@@ -22,6 +22,9 @@ Layout of the results (see docs/logs.md):
   column names); a redefinition that changes any of these starts a new stream, an identical one
   continues the old stream. `LogFile.data(index)` concatenates the streams of an index when they
   share one layout and otherwise refuses and points at `LogFile.streams_of(index)`.
+
+Size: the fast path, the salvage path for damaged files and the per-format decoding share
+the record-walking code; splitting it would duplicate that.
 """
 
 from __future__ import annotations

@@ -12,6 +12,9 @@ warning, and its producers simply see their records dropped.
 Definitions, comments and Begin/End markers bypass the queue limit (they are rare and a file
 without them cannot be read). Text logs (``text=True``) receive the same records and render
 them in the writer thread with the converter's layout (`companion.logs.convert`).
+
+Size: the writer thread, its queue, the per-thread handle and the text-mode variant share
+one shutdown and overflow policy, which is clearer in one file.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from companion.core.osthread import set_native_name
 from companion.logs.convert import csv_header, csv_name, format_time, marker_line
 from companion.logs.formats import FormatSpec, parse_format
 from companion.logs.reader import column_names, framed_length
@@ -48,7 +52,6 @@ from companion.logs.records import (
     encode_marker,
     split_time_ns,
 )
-from companion.osthread import set_native_name
 
 __all__ = ["LogService", "ThreadLog", "write_run_json"]
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.core.geo import NedFrame
 from companion.estimation.quat import quat_from_euler, wrap_pi
-from companion.geo import NedFrame
 from companion.logs import Stream
 from companion.report.flight import FlightData, LogStatus
 

@@ -1,4 +1,4 @@
-"""``companion logs report`` and ``companion logs view``.
+"""``companion logs report`` (``companion logs view`` is in companion.liveview.cli).
 
 Registered by the main CLI on the ``logs`` sub-parsers through `add_commands`. Exit codes: 0 a
 report or replay was produced (possibly partial: what is missing is printed), 1 the flight
@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
-import threading
 from pathlib import Path
 
-__all__ = ["add_commands", "cmd_report", "cmd_view", "main"]
+__all__ = ["add_commands", "cmd_report", "main"]
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Add ``report`` and ``view`` to the ``companion logs`` sub-parsers."""
+    """Add ``report`` to the ``companion logs`` sub-parsers."""
     r = sub.add_parser("report", help="PNG figures and one self-contained HTML page of a flight")
     r.add_argument("flight_dir", type=Path, metavar="FLIGHT_DIR")
     r.add_argument("-o", "--out", type=Path, help="output directory (default: FLIGHT_DIR/report)")
@@ -26,17 +24,6 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
                    help="skip converting the logs to CSV to measure the CSV size")
     r.add_argument("--json", action="store_true", help="print the result as JSON")
     r.set_defaults(func=cmd_report)
-
-    v = sub.add_parser("view", help="replay a flight into the rerun viewer on the log timestamps")
-    v.add_argument("flight_dir", type=Path, metavar="FLIGHT_DIR")
-    dest = v.add_mutually_exclusive_group()
-    dest.add_argument("--rerun-save", type=Path, metavar="PATH", help="write an .rrd file instead")
-    dest.add_argument("--serve", action="store_true",
-                      help="serve to web browsers (gRPC on --grpc-port, web viewer on --web-port) "
-                           "until Ctrl-C")
-    v.add_argument("--grpc-port", type=int, default=9876)
-    v.add_argument("--web-port", type=int, default=9090)
-    v.set_defaults(func=cmd_view)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -66,59 +53,6 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(p)
     print(result.html)
     return 0
-
-
-def cmd_view(args: argparse.Namespace) -> int:
-    from companion.liveview import ViewerError, replay_flight
-    from companion.liveview.replay import replay_into
-    from companion.liveview.sink import open_recording
-    from companion.report.flight import load_flight
-
-    try:
-        if args.serve:
-            fd = load_flight(args.flight_dir)
-            rec = open_recording(serve=True, name=fd.flight_dir.name, grpc_port=args.grpc_port,
-                                 web_port=args.web_port)
-            try:
-                result = replay_into(fd, rec.stream)
-                rec.stream.flush()
-                print(f"serving {sum(result.samples.values())} rows: open {rec.web_url} "
-                      f"(or connect a viewer to {rec.url}); Ctrl-C to stop", file=sys.stderr)
-                _wait_for_stop()
-            except KeyboardInterrupt:
-                pass
-            finally:
-                rec.close()
-            return 0
-        result = replay_flight(args.flight_dir, args.rerun_save, spawn=args.rerun_save is None)
-    except FileNotFoundError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except ViewerError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    for problem in result.problems:
-        print(f"warning: {problem}", file=sys.stderr)
-    for item in result.missing:
-        print(f"not shown: {item}", file=sys.stderr)
-    total = sum(result.samples.values())
-    where = args.rerun_save if args.rerun_save else "the rerun viewer"
-    print(f"replayed {total} rows on {len(result.samples)} entities to {where}")
-    return 0
-
-
-def _wait_for_stop() -> None:
-    """Block until Ctrl-C or SIGTERM (a service manager stopping the server)."""
-    stop = threading.Event()
-    old = None
-    if threading.current_thread() is threading.main_thread():
-        old = signal.signal(signal.SIGTERM, lambda _sig, _frame: stop.set())
-    try:
-        while not stop.wait(0.5):
-            pass
-    finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from companion.geo import NedFrame
+from companion.core.geo import NedFrame
 from companion.report.analysis import (
     PERIOD_SOURCES,
     Track,

@@ -8,8 +8,9 @@ from collections.abc import Callable
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from companion.cli import config_from_args, print_summary
-    from companion.runtime import every, status_line
+    from companion.cli_common import config_from_args, print_summary
+    from companion.core.clock import every
+    from companion.runtime import status_line
     from companion.sim.runner import FAST_SCALE, SimError, SimOptions, run_fleet, run_sim
     from companion.sim.scenarios import SCENARIOS
 

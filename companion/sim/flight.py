@@ -7,6 +7,9 @@ x forward, y right, z down.
 
 The model runs at a fixed rate that is a whole multiple of 100 Hz, so the 100 Hz IMU frames of
 the device contract fall exactly on model steps (JSBSim's customary 120 Hz would not).
+
+Size: it is the single adapter between JSBSim's properties and imperial units and the rest
+of the project; keeping every conversion here is the point of it.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from dataclasses import dataclass
 
 import jsbsim
 
-from companion.geo import NedFrame
+from companion.core.geo import NedFrame
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +102,7 @@ class TruthState:
     """True aircraft state at one instant, SI units.
 
     Frames: NED for positions and velocities (position relative to the start point, on the
-    tangent plane of :class:`companion.geo.NedFrame`), body axes x forward, y right, z down
+    tangent plane of :class:`companion.core.geo.NedFrame`), body axes x forward, y right, z down
     for rates and specific force. Euler angles are the usual yaw-pitch-roll (3-2-1) sequence,
     ``yaw_rad`` in (-pi, pi] from true north. Body rates are inertial (what a gyro measures; they
     differ from earth-relative rates by at most the earth rate, 7.3e-5 rad/s). Specific force is

@@ -15,9 +15,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.clock import Clock
-from companion.config import Config
-from companion.runtime import Runtime, RuntimeOptions, new_flight_dir, write_json_atomic
+from companion.core.clock import Clock
+from companion.core.config import Config
+from companion.core.files import write_json_atomic
+from companion.liveview import live_view_bridges
+from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +134,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             while True:
                 rt = Runtime(cfg, RuntimeOptions(
                     clock=clock, flight_dir=flight_dir,
-                    extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}}))
+                    extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}},
+                    extra_bridges=live_view_bridges(cfg)))
                 if sim.gps_ashtech:
                     rt.ctx.params.set("GPS_PASHR", 1)
                 if on_runtime is not None:

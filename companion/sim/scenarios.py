@@ -24,6 +24,9 @@ roll rate -> aileron; altitude -> climb rate -> pitch attitude -> pitch rate -> 
 -> throttle; side force -> rudder (keep the ball centred). Manoeuvres switch loops (a loop is
 flown on load factor, a roll on the aileron alone) and a small seeded random stick jitter keeps
 the flight from being unnaturally clean while staying reproducible.
+
+Size: a library of manoeuvres and the scenarios built from them, each a few lines; one file
+keeps the catalogue readable as a whole.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.clock import Clock
+from companion.core.clock import Clock
 from companion.sim.devices import (
     FaultInjector,
     FaultPlan,

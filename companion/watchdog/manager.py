@@ -24,8 +24,8 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from companion.params import ParamError, ParamSpec, int_param
-from companion.sync import MessageQueue
+from companion.core.params import ParamSpec, ParamValue, int_param
+from companion.core.sync import MessageQueue
 from companion.watchdog.events import EventKind, WatchdogEvent
 from companion.watchdog.thread import (
     ManagedThread,
@@ -107,6 +107,7 @@ class ThreadManager:
         for t in self.threads:
             self._adopt(t)
         self._param_unsub = ctx.params.subscribe(self._on_param_changed)
+        self._rule_remove = ctx.params.add_rule(self._watchdog_rule)
 
     def _adopt(self, t: ManagedThread) -> None:
         t.ctx = self.ctx
@@ -222,6 +223,7 @@ class ThreadManager:
                 self._stop_thread(t, why="shutdown")
                 self._emit(EventKind.STOPPED, t.name, "shutdown")
         self._param_unsub()
+        self._rule_remove()
         try:
             self.ctx.params.flush()
         except OSError as exc:
@@ -277,7 +279,9 @@ class ThreadManager:
         # Host time, not the flight's clock: how long the OS takes to let a thread leave a blocking
         # call does not shrink when the simulation runs faster (at --speed 5, a scaled 500 ms left
         # 100 ms, and a loaded machine abandoned healthy threads that still held their ports).
-        host_timeout_s = int(self.ctx.params.get("MGR_SHUTDOWN_MS")) / 1000
+        timeout_ms = (t.shutdown_timeout_ms if t.shutdown_timeout_ms is not None
+                      else int(self.ctx.params.get("MGR_SHUTDOWN_MS")))
+        host_timeout_s = timeout_ms / 1000
         worker = t._worker
         outcome = "stopped"
         t._stop.set()
@@ -415,9 +419,19 @@ class ThreadManager:
                 except Exception:
                     log.exception("command reply failed")
 
-    def validate_granularity(self, granularity_ms: int) -> None:
-        """Refuse a granularity longer than the shortest watchdog period (legacy contract)."""
-        shortest = min((t.watchdog_ms for t in self.threads), default=granularity_ms)
-        if granularity_ms > shortest:
-            raise ParamError("MGR_WDG_GRAN_MS",
-                             f"{granularity_ms} ms exceeds the shortest watchdog period {shortest} ms")
+    def _watchdog_rule(self, name: str, value: ParamValue,
+                       value_of: Callable[[str], ParamValue]) -> str | None:
+        """The watchdog checks a thread once per granularity, so a watchdog period shorter than
+        the granularity cannot be honoured: refuse either side of that (the legacy contract's
+        rule, applied to every source of a change)."""
+        wdg_names = {f"{t.param_prefix}_WDG_MS" for t in self.threads}
+        if name == "MGR_WDG_GRAN_MS":
+            periods = [int(value_of(n)) for n in sorted(wdg_names) if n in self.ctx.params]
+            shortest = min(periods, default=int(value))
+            if int(value) > shortest:
+                return f"{int(value)} ms exceeds the shortest watchdog period {shortest} ms"
+        elif name in wdg_names:
+            granularity = int(value_of("MGR_WDG_GRAN_MS"))
+            if int(value) < granularity:
+                return f"{int(value)} ms below MGR_WDG_GRAN_MS {granularity} ms"
+        return None

@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from companion.clock import Clock
-from companion.osthread import set_native_name
-from companion.params import ParamRegistry, ParamSpec, int_param
-from companion.state import VehicleState
+from companion.core.clock import Clock
+from companion.core.osthread import set_native_name
+from companion.core.params import ParamRegistry, ParamSpec, int_param
+from companion.core.state import VehicleState
 
 if TYPE_CHECKING:
     from companion.watchdog.manager import ThreadManager
@@ -120,7 +120,7 @@ class ManagedThread:
         budget_ms: float | None = None,
         watchdog_ms: int = 500,
         message_ms: int = 1000,
-        shutdown_timeout_ms: int = 500,
+        shutdown_timeout_ms: int | None = None,
         param_prefix: str | None = None,
     ) -> None:
         self.name = name
@@ -128,6 +128,8 @@ class ManagedThread:
         self.period_ms = period_ms
         self.budget_ms = budget_ms if budget_ms is not None else (period_ms or 10.0)
         self.shutdown_timeout_ms = shutdown_timeout_ms
+        """How long this thread may take to stop (host ms); None: the manager's MGR_SHUTDOWN_MS.
+        A thread whose cleanup legitimately takes longer (flushing a device) says so here."""
         self.param_prefix = (param_prefix or name).upper()[:6]
         self._default_watchdog_ms = watchdog_ms
         self._default_message_ms = message_ms

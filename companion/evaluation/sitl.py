@@ -13,7 +13,7 @@ pieces are wired together in one deterministic loop, tick by tick:
   decoder ``gps_latency_s`` late, as the world delivers them;
 * :class:`~companion.drivers.imu_protocol.ImuDecoder` and
   :class:`~companion.drivers.gps_protocol.NmeaDecoder` (the drivers' own decoders) turn the bytes
-  back into :class:`~companion.state.ImuSample` and :class:`~companion.state.GpsFix`;
+  back into :class:`~companion.core.state.ImuSample` and :class:`~companion.core.state.GpsFix`;
 * :class:`EskfAsThread` feeds :class:`~companion.estimation.eskf.Eskf` the way
   :class:`~companion.estimation.thread.EstimatorThread` does (initial phase, moving-start
   detection, GPS standard deviations and latency, horizon weighting), with the thread's own
@@ -26,6 +26,9 @@ Errors are computed against the truth at every IMU sample. Frames: the truth and
 share the NED frame anchored at the flight model's start point (SITL sets the runtime's home to
 it). VQF and Madgwick use a z-up earth frame with an arbitrary heading: only their inclination
 (the angle between the estimated and true vertical, seen from the body) is scored.
+
+Size: recording a flight, running each filter the way its thread does and scoring it are
+one pipeline; its stages are separate functions.
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.core.geo import NedFrame
+from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
@@ -55,11 +60,9 @@ from companion.estimation.quat import (
     quat_to_rotvec,
 )
 from companion.estimation.thread import EstimatorThread
-from companion.geo import NedFrame
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
 from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
-from companion.state import GpsFix, HorizonMeasurement, ImuSample
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,9 @@
 
 `companion horizon stream --rerun-save PATH` (or `--rerun`) writes what the detector saw next to
 the flight's own live view: same application, same `flight_time` timeline, `camera/image` and
-`camera/image/horizon`, so the two recordings line up in one viewer.
+`camera/image/horizon`, so the two recordings line up in one viewer. It lives on the companion
+side so that the horizon library imports nothing of the companion: the main CLI hands this class
+to `horizon.cli.add_commands`.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.liveview import entities as E
+from companion.liveview.sink import open_recording
 from horizon.estimate import HorizonEstimate
 
 FRAME_EVERY_S = 0.1  # at most 10 frames a second go to the viewer: images are large
@@ -18,9 +22,6 @@ FRAME_EVERY_S = 0.1  # at most 10 frames a second go to the viewer: images are l
 
 class RerunFrames:
     def __init__(self, *, spawn: bool = False, save_path: Path | None = None) -> None:
-        from companion.liveview import entities as E
-        from companion.liveview.sink import open_recording
-
         self._e = E
         self.recording = open_recording(spawn=spawn, save_path=save_path)
         self._last_ns = 0

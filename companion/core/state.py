@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from companion.sync import DataSlot, MessageQueue, WaitableSlot
+from companion.core.sync import DataSlot, MessageQueue, WaitableSlot
 
 Vec3 = tuple[float, float, float]
 

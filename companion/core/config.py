@@ -1,7 +1,7 @@
 """Runtime configuration: one TOML file, every value overridable on the command line.
 
 Settings are things that describe the installation (which port the IMU is on, where the ground
-station listens); parameters (companion.params) are things an operator tunes in flight. A
+station listens); parameters (companion.core.params) are things an operator tunes in flight. A
 setting changes only with a restart, which is why the two live apart.
 """
 

@@ -13,15 +13,15 @@ from __future__ import annotations
 import enum
 import logging
 import math
-import os
 import re
-import tempfile
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from companion.core.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -94,14 +94,16 @@ class ParamSpec:
     def validate(self, value: object) -> ParamValue:
         """Coerce `value` to this parameter's type or raise `ParamError` saying why not."""
         if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-            raise ParamError(self.name, f"wrong type: expected {self.ptype.value}, got {value!r}")
+            raise ParamError(self.name, f"wrong type: expected {self.ptype.value}, got {value!r}",
+                             ParamErrorKind.WRONG_TYPE)
         v = float(value)
         if math.isnan(v) or math.isinf(v):
             raise ParamError(self.name, f"value {value!r} is not finite")
         coerced: ParamValue
         if self.ptype is ParamType.INT32:
             if v != int(v):
-                raise ParamError(self.name, f"wrong type: {value!r} is not an integer (int32)")
+                raise ParamError(self.name, f"wrong type: {value!r} is not an integer (int32)",
+                                 ParamErrorKind.WRONG_TYPE)
             coerced = int(v)
         else:
             coerced = to_float32(v)
@@ -118,13 +120,33 @@ class ParamSpec:
         return coerced
 
 
+class ParamErrorKind(enum.Enum):
+    """Why a parameter operation was refused, for callers that answer in a protocol's own terms
+    (a MAVLink PARAM_ERROR code, a legacy ACK result) without parsing the reason text."""
+
+    UNKNOWN = "unknown"
+    READ_ONLY = "read-only"
+    WRONG_TYPE = "wrong type"
+    OUT_OF_RANGE = "out of range"
+    CONFLICT = "conflict"
+    """Refused by a rule between parameters (see `ParamRegistry.add_rule`)."""
+
+
 class ParamError(ValueError):
     """A refused parameter operation; `reason` is short enough for a MAVLink STATUSTEXT."""
 
-    def __init__(self, name: str, reason: str) -> None:
+    def __init__(self, name: str, reason: str,
+                 kind: ParamErrorKind = ParamErrorKind.OUT_OF_RANGE) -> None:
         super().__init__(f"{name}: {reason}")
         self.name = name
         self.reason = reason
+        self.kind = kind
+
+
+Rule = Callable[[str, "ParamValue", Callable[[str], "ParamValue"]], "str | None"]
+"""A rule between parameters: ``rule(name, new_value, value_of)`` returns why the change is
+refused, or None. `value_of` gives the other parameters' values as they would be after the
+change (so a rule sees every value of a multi-parameter request)."""
 
 
 def int_param(name: str, default: int, lo: int, hi: int, unit: str = "", desc: str = "",
@@ -166,6 +188,7 @@ class ParamRegistry:
         self._order: list[str] = []
         self._values: dict[str, ParamValue] = {}
         self._listeners: list[Listener] = []
+        self._rules: list[Rule] = []
         self._generation = 0
         self._saved_generation = 0
         self._path: Path | None = None
@@ -207,14 +230,14 @@ class ParamRegistry:
             try:
                 return self._specs[name]
             except KeyError:
-                raise ParamError(name, "unknown parameter") from None
+                raise ParamError(name, "unknown parameter", ParamErrorKind.UNKNOWN) from None
 
     def index_of(self, name: str) -> int:
         with self._lock:
             try:
                 return self._order.index(name)
             except ValueError:
-                raise ParamError(name, "unknown parameter") from None
+                raise ParamError(name, "unknown parameter", ParamErrorKind.UNKNOWN) from None
 
     def name_at(self, index: int) -> str:
         with self._lock:
@@ -227,32 +250,79 @@ class ParamRegistry:
             try:
                 return self._values[name]
             except KeyError:
-                raise ParamError(name, "unknown parameter") from None
+                raise ParamError(name, "unknown parameter", ParamErrorKind.UNKNOWN) from None
 
     def snapshot(self) -> dict[str, ParamValue]:
         with self._lock:
             return {n: self._values[n] for n in self._order}
 
     # -- change ------------------------------------------------------------------------------
+    def add_rule(self, rule: Rule) -> Callable[[], None]:
+        """Register a rule between parameters, checked on every change from any source (MAVLink,
+        the legacy protocol, a file, the console); returns a function that removes it."""
+        with self._lock:
+            self._rules.append(rule)
+
+        def remove() -> None:
+            with self._lock:
+                if rule in self._rules:
+                    self._rules.remove(rule)
+
+        return remove
+
+    def check(self, changes: Mapping[str, object], *, force: bool = False) -> dict[str, ParamValue]:
+        """Validate a request of one or more changes without applying it: each value against
+        its parameter, then every rule against the values as they would be afterwards.
+
+        Returns the coerced values; raises the first `ParamError` (with its `kind`)."""
+        coerced: dict[str, ParamValue] = {}
+        for name, value in changes.items():
+            spec = self.spec(name)
+            if spec.read_only and not force:
+                raise ParamError(name, "read-only", ParamErrorKind.READ_ONLY)
+            coerced[name] = spec.validate(value)
+        with self._lock:
+            rules = list(self._rules)
+            current = dict(self._values)
+        current.update(coerced)
+
+        def value_of(other: str) -> ParamValue:
+            try:
+                return current[other]
+            except KeyError:
+                raise ParamError(other, "unknown parameter", ParamErrorKind.UNKNOWN) from None
+
+        for name, value in coerced.items():
+            for rule in rules:
+                reason = rule(name, value, value_of)
+                if reason:
+                    raise ParamError(name, reason, ParamErrorKind.CONFLICT)
+        return coerced
+
     def set(self, name: str, value: object, *, force: bool = False) -> ParamValue:
-        """Validate and apply; raises ParamError (unknown, read-only, wrong type, range).
+        """Validate and apply one change; raises ParamError (see `check`).
 
         `force` lets the owner change a read-only value (for example a measured figure).
         """
-        spec = self.spec(name)
-        if spec.read_only and not force:
-            raise ParamError(name, "read-only")
-        coerced = spec.validate(value)
+        return self.set_many({name: value}, force=force)[name]
+
+    def set_many(self, changes: Mapping[str, object], *,
+                 force: bool = False) -> dict[str, ParamValue]:
+        """Apply every change of one request or none of them (see `check`): the one way a
+        parameter changes, whoever asks."""
+        coerced = self.check(changes, force=force)
+        changed: list[tuple[str, ParamValue]] = []
         with self._lock:
-            changed = self._values[name] != coerced
-            self._values[name] = coerced
-            if changed:
-                self._generation += 1
+            for name, value in coerced.items():
+                if self._values[name] != value:
+                    self._values[name] = value
+                    self._generation += 1
+                    changed.append((name, value))
             listeners = list(self._listeners)
-        if changed:
+        for name, value in changed:
             for listener in listeners:
                 try:
-                    listener(name, coerced)
+                    listener(name, value)
                 except Exception:  # a listener's bug must not refuse a valid change
                     log.exception("parameter listener failed for %s", name)
         return coerced
@@ -385,26 +455,5 @@ def parse_param_file(
             continue
         yield lineno, name, line, value, None
 
-
-def atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 
 class Clock:
@@ -58,3 +59,17 @@ class Clock:
                 return stop.is_set()
             if stop.wait(remaining_ns / 1e9 / self.scale):
                 return True
+
+
+def every(period_s: float, fn: Callable[[], None]) -> Callable[[], None]:
+    """Wrap `fn` so that calling the wrapper often (a manager tick hook) runs it at most once per
+    `period_s` of host time, for console status lines and other human-paced output."""
+    last = [0.0]
+
+    def hook() -> None:
+        now = time.monotonic()
+        if now - last[0] >= period_s:
+            last[0] = now
+            fn()
+
+    return hook
