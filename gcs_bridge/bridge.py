@@ -81,7 +81,6 @@ class MavlinkBridge:
         self.links: list[Link] = []
         self.threads: list[LinkReceiver | LinkSender] = []
         self._senders: list[LinkSender] = []
-        next_id = max((t.thread_id for t in manager.threads), default=0) + 1
         for index, ep in enumerate(parsed):
             signing_on = key is not None and ep.signing is not False
             unsigned_reads = allow_unsigned_reads if ep.unsigned_reads is None else ep.unsigned_reads
@@ -92,9 +91,8 @@ class MavlinkBridge:
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,
                         broadcast_text=self.broadcast_text)
-            rx = LinkReceiver(link, next_id)
-            tx = LinkSender(link, next_id + 1)
-            next_id += 2
+            rx = LinkReceiver(link, 0)  # the manager hands out the ids
+            tx = LinkSender(link, 0)
             manager.add(rx)
             manager.add(tx)
             self.links.append(link)

@@ -176,15 +176,6 @@ class LegacyAdapter:
         self.tx = _Tx(self)
         manager.add(self.rx)
         manager.add(self.tx)
-        # ids for threads beyond the contract's five: the next free ones
-        used = {t.thread_id for t in manager.threads if 1 <= t.thread_id <= 5}
-        next_id = 6
-        for t in manager.threads:
-            if not 1 <= t.thread_id <= 255 or (t.thread_id > 5 and t.thread_id in used):
-                while next_id in used:
-                    next_id += 1
-                t.thread_id = next_id
-            used.add(t.thread_id)
         manager.on_tick.append(self.process_commands)
 
     # ------------------------------------------------------------------ receive side

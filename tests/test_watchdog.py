@@ -322,3 +322,19 @@ def test_watchdog_periods_and_granularity_are_one_rule_for_every_source() -> Non
         params.set_many({"IMU_WDG_MS": 300, "MGR_STATUS_MS": 2000})
     assert (params.get("IMU_WDG_MS"), params.get("MGR_STATUS_MS")) == (1000, 1000)
     mgr.shutdown()
+
+
+def test_the_manager_owns_thread_ids() -> None:
+    """Fixed ids (the vehicle's data sources) stay; id 0 gets the lowest free id from 6; a taken
+    or out-of-range id is refused at once, naming both threads."""
+    fixed = _SlowToStop("imu", thread_id=1, period_ms=10.0)
+    first, second = (_SlowToStop(n, thread_id=0, period_ms=10.0) for n in ("mav0rx", "mav0tx"))
+    mgr = make_manager(fixed, first)
+    mgr.add(second)
+    assert [t.thread_id for t in mgr.threads] == [1, 6, 7]
+    with pytest.raises(ValueError, match="id 1 is taken by imu"):
+        mgr.add(_SlowToStop("gps", thread_id=1, period_ms=10.0))
+    with pytest.raises(ValueError, match="outside 1..255"):
+        mgr.add(_SlowToStop("big", thread_id=300, period_ms=10.0))
+    assert [t.name for t in mgr.threads] == ["imu", "mav0rx", "mav0tx"]  # refused, not added
+    mgr.shutdown()

@@ -28,11 +28,10 @@ from companion.liveview.tail import LogTail
 from companion.report.analysis import quat_xyzw
 from companion.watchdog import ManagedThread, RestartType, RuntimeContext, ThreadManager
 
-__all__ = ["LIVEVIEW_THREAD_ID", "LiveView", "LiveViewThread"]
+__all__ = ["LiveView", "LiveViewThread"]
 
 log = logging.getLogger(__name__)
 
-LIVEVIEW_THREAD_ID = 20
 RATE_HZ = 25.0
 PATH_POINTS_MAX = 2000  # per path; older points are thinned, never dropped entirely
 SLOW_EVERY = 25  # ticks between path and thread-health updates (1 s at 25 Hz)
@@ -106,7 +105,7 @@ class LiveViewThread(ManagedThread):
 
     def __init__(self, *, spawn: bool = False, save_path: Path | None = None, serve: bool = False,
                  clock_scale: float = 1.0, rate_hz: float = RATE_HZ, name: str = "liveview",
-                 thread_id: int = LIVEVIEW_THREAD_ID) -> None:
+                 thread_id: int = 0) -> None:
         period_ms = 1000.0 / rate_hz * clock_scale  # clock time, so the host rate stays rate_hz
         super().__init__(name, thread_id=thread_id, period_ms=period_ms, budget_ms=period_ms,
                          watchdog_ms=max(2000, int(20 * period_ms)), message_ms=1000,

@@ -37,6 +37,12 @@ from companion.watchdog.thread import (
 
 log = logging.getLogger(__name__)
 
+THREAD_ID_MAX = 255
+"""Ids fit the legacy protocol's uint8 thread id field."""
+FIRST_ASSIGNED_ID = 6
+"""Ids below are fixed by the vehicle's data sources (IMU 1, GPS 2, servo 3, estimator 4,
+control 5: the legacy protocol's contract); the manager hands out the rest."""
+
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
               "Programmed execution time: the runtime stops cleanly after it. 0 = unlimited."),
@@ -110,10 +116,25 @@ class ThreadManager:
         self._rule_remove = ctx.params.add_rule(self._watchdog_rule)
 
     def _adopt(self, t: ManagedThread) -> None:
+        self._assign_id(t)
         t.ctx = self.ctx
         t._manager = self
         self.ctx.params.declare_all(t.base_params() + t.declare_params())
         self._restart_times.setdefault(t.name, deque())
+
+    def _assign_id(self, t: ManagedThread) -> None:
+        """The manager owns thread ids: a thread built with id 0 gets the lowest free one from
+        FIRST_ASSIGNED_ID; a fixed id (the vehicle's data sources, 1..5) must be unique. The
+        ground protocols (MAVLink named values, the legacy THREAD_STATUS) use these ids as they
+        are, so nothing downstream renumbers."""
+        taken = {other.thread_id: other.name for other in self.threads if other is not t}
+        if t.thread_id == 0:
+            t.thread_id = next(i for i in range(FIRST_ASSIGNED_ID, THREAD_ID_MAX + 2)
+                               if i not in taken)
+        if not 1 <= t.thread_id <= THREAD_ID_MAX:
+            raise ValueError(f"thread {t.name}: id {t.thread_id} outside 1..{THREAD_ID_MAX}")
+        if t.thread_id in taken:
+            raise ValueError(f"thread {t.name}: id {t.thread_id} is taken by {taken[t.thread_id]}")
 
     def add(self, t: ManagedThread) -> None:
         """Add a thread after construction (bridges that need the manager); before start()."""
@@ -121,6 +142,7 @@ class ThreadManager:
             raise RuntimeError("threads must be added before the manager starts")
         if self.find(t.name) is not None:
             raise ValueError(f"a thread named {t.name!r} exists already")
+        self._assign_id(t)  # refuses before the thread joins the list
         self.threads.append(t)
         self._adopt(t)
 
