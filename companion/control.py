@@ -55,6 +55,20 @@ class Pid:
         self.integral = 0.0
 
 
+@dataclass(frozen=True)
+class _Settings:
+    """The control law's parameters, typed and in SI units, as of the last change."""
+
+    mode: int
+    roll_max_rad: float
+    pitch_max_rad: float
+    pitch_sp_rad: float
+    roll_sp_rad: float
+    hdg_kp: float
+    alt_kp: float
+    vz_kd: float
+
+
 class ControlThread(ManagedThread):
     def __init__(self, *, name: str = "control", thread_id: int = 5) -> None:
         super().__init__(name, thread_id=thread_id, watchdog_ms=1000, message_ms=1000,
@@ -67,6 +81,7 @@ class ControlThread(ManagedThread):
         self._last_t_ns = 0
         self.roll_pid = Pid(1.2, 0.1, 0.15, 0.3)
         self.pitch_pid = Pid(2.0, 0.3, 0.3, 0.3)
+        self._settings: _Settings | None = None  # read on start and on a change, not per step
 
     def declare_params(self) -> list[ParamSpec]:
         p = self.param_prefix
@@ -98,10 +113,17 @@ class ControlThread(ManagedThread):
                     ["mode", "enabled", "aileron", "elevator", "rudder", "throttle",
                      "roll_sp_rad", "pitch_sp_rad", "alt_sp_m", "hdg_sp_rad"])
 
-    def _tune(self) -> None:
+    def _tune(self) -> _Settings:
+        """Read this thread's parameters once, typed, into the gains and the step's settings."""
         g = self.param
         self.roll_pid.kp, self.roll_pid.ki, self.roll_pid.kd = g("ROLL_KP"), g("ROLL_KI"), g("ROLL_KD")
         self.pitch_pid.kp, self.pitch_pid.ki, self.pitch_pid.kd = g("PTCH_KP"), g("PTCH_KI"), g("PTCH_KD")
+        self._settings = _Settings(
+            mode=int(g("MODE")), roll_max_rad=math.radians(g("ROLL_MAX")),
+            pitch_max_rad=math.radians(g("PTCH_MAX")), pitch_sp_rad=math.radians(g("PTCH_SP")),
+            roll_sp_rad=math.radians(g("ROLL_SP")), hdg_kp=float(g("HDG_KP")),
+            alt_kp=float(g("ALT_KP")), vz_kd=float(g("VZ_KD")))
+        return self._settings
 
     def prologue(self) -> bool:
         """Wait for the estimator's first output: until then there is nothing to control, and
@@ -143,7 +165,8 @@ class ControlThread(ManagedThread):
         return True
 
     def compute(self, est: EstimatorState) -> ControlOutput:
-        mode = int(self.param("MODE"))
+        cfg = self._settings if self._settings is not None else self._tune()
+        mode = cfg.mode
         pilot_auto, pilot_throttle = self._pilot_auto()
         active = mode != MODE_OFF and pilot_auto and est.aligned
         dt_s = 0.01 if not self._last_t_ns else clamp((est.t_ns - self._last_t_ns) / 1e9, 1e-3, 0.1)
@@ -157,19 +180,18 @@ class ControlThread(ManagedThread):
             self.roll_pid.reset()
             self.pitch_pid.reset()
         self._engaged = active
-        roll_max = math.radians(self.param("ROLL_MAX"))
-        pitch_max = math.radians(self.param("PTCH_MAX"))
+        roll_max = cfg.roll_max_rad
+        pitch_max = cfg.pitch_max_rad
         roll_sp = 0.0
-        pitch_sp = math.radians(self.param("PTCH_SP"))
+        pitch_sp = cfg.pitch_sp_rad
         if mode == MODE_ATTITUDE:
-            roll_sp = math.radians(self.param("ROLL_SP"))
+            roll_sp = cfg.roll_sp_rad
         if mode == MODE_HEADING_ALT:
-            roll_sp = clamp(self.param("HDG_KP") * wrap_pi(self._hdg_sp_rad - est.yaw_rad),
+            roll_sp = clamp(cfg.hdg_kp * wrap_pi(self._hdg_sp_rad - est.yaw_rad),
                             -roll_max, roll_max)
         if mode in (MODE_LEVEL_ALT, MODE_HEADING_ALT):
             climb_m_s = -est.vel_ned_m_s[2]
-            pitch_sp = (self.param("ALT_KP") * (self._alt_sp_m - alt_m)
-                        - self.param("VZ_KD") * climb_m_s)
+            pitch_sp = cfg.alt_kp * (self._alt_sp_m - alt_m) - cfg.vz_kd * climb_m_s
         roll_sp = clamp(roll_sp, -roll_max, roll_max)
         pitch_sp = clamp(pitch_sp, -pitch_max, pitch_max)
         p, q, _r = est.rates_rad_s

@@ -229,33 +229,22 @@ def _capture_lines() -> set[str]:
 # Decoded values, named as on the page
 
 
+def _motion(decoded: ImuFast | ImuSlow, rate: str = "", accel: str = "") -> dict[str, Any]:
+    """Rates and accelerations under the page's names (`rate`/`accel`: their unit suffixes)."""
+    names = ("p", "q", "r", "ax", "ay", "az")
+    values = (*decoded.rates_rad_s, *decoded.accel_m_s2)
+    suffixes = (rate,) * 3 + (accel,) * 3
+    return {n + s: v for n, s, v in zip(names, suffixes, values, strict=True)}
+
+
 def _fast_values(frame: bytes, fast: ImuFast) -> dict[str, Any]:
-    return {
-        "counter": fast.counter,
-        "status": fast.status,
-        "p_rad_s": fast.rates_rad_s[0],
-        "q_rad_s": fast.rates_rad_s[1],
-        "r_rad_s": fast.rates_rad_s[2],
-        "ax_m_s2": fast.accel_m_s2[0],
-        "ay_m_s2": fast.accel_m_s2[1],
-        "az_m_s2": fast.accel_m_s2[2],
-        "slow_word": fast.slow_word,
-        "checksum": struct.unpack_from("<H", frame, 18)[0],
-    }
+    return {"counter": fast.counter, "status": fast.status, **_motion(fast, "_rad_s", "_m_s2"),
+            "slow_word": fast.slow_word, "checksum": struct.unpack_from("<H", frame, 18)[0]}
 
 
 def _slow_values(block: bytes, slow: ImuSlow) -> dict[str, Any]:
-    return {
-        "p_rad_s": slow.rates_rad_s[0],
-        "q_rad_s": slow.rates_rad_s[1],
-        "r_rad_s": slow.rates_rad_s[2],
-        "ax_m_s2": slow.accel_m_s2[0],
-        "ay_m_s2": slow.accel_m_s2[1],
-        "az_m_s2": slow.accel_m_s2[2],
-        "temperature_c": slow.temperature_c,
-        "bit_word": slow.bit_word,
-        "crc": struct.unpack_from("<H", block, 198)[0],
-    }
+    return {**_motion(slow, "_rad_s", "_m_s2"), "temperature_c": slow.temperature_c,
+            "bit_word": slow.bit_word, "crc": struct.unpack_from("<H", block, 198)[0]}
 
 
 def _servo_values(frame: bytes, decoded: ServoCommand | PilotFrame) -> dict[str, Any]:
@@ -456,29 +445,11 @@ def _layout_fields(name: str, frame: bytes) -> dict[str, Any]:
     """What the project's decoder reads from ``frame``, under the field names of the table."""
     if name == "imu-layout-fast":
         fast = decode_fast_frame(frame)
-        return {
-            "counter": fast.counter,
-            "status": fast.status,
-            "p": fast.rates_rad_s[0],
-            "q": fast.rates_rad_s[1],
-            "r": fast.rates_rad_s[2],
-            "ax": fast.accel_m_s2[0],
-            "ay": fast.accel_m_s2[1],
-            "az": fast.accel_m_s2[2],
-            "slow_word": fast.slow_word,
-        }
+        return {"counter": fast.counter, "status": fast.status, **_motion(fast),
+                "slow_word": fast.slow_word}
     if name == "imu-layout-slow":
         slow = decode_slow_block(frame)
-        return {
-            "p": slow.rates_rad_s[0],
-            "q": slow.rates_rad_s[1],
-            "r": slow.rates_rad_s[2],
-            "ax": slow.accel_m_s2[0],
-            "ay": slow.accel_m_s2[1],
-            "az": slow.accel_m_s2[2],
-            "temperature": slow.temperature_c,
-            "bit_word": slow.bit_word,
-        }
+        return {**_motion(slow), "temperature": slow.temperature_c, "bit_word": slow.bit_word}
     decoded: ServoCommand | PilotFrame
     if name == "servo-layout-command":
         decoded = decode_command(frame)

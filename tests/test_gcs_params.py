@@ -110,7 +110,12 @@ def test_set_keeps_the_raw_bytes_and_takes_effect(tmp_path: Path) -> None:
         assert v.params.get("TST_BIG") == 0x7F800001
         param_set(gcs, "TST_F", struct.pack("<f", 3.5), param_codec.T_REAL32, target_comp=0)
         assert value_of(gcs, "TST_F").param_value == 3.5
-        assert wait_for(lambda: source.on_params_changed_calls > calls, 2.0), "thread not told"
+        # a change is told to the thread that owns the parameter, and only to it
+        assert source.on_params_changed_calls == calls
+        own = f"{source.param_prefix}_MSG_MS"
+        param_set(gcs, own, struct.pack("<i", 500), param_codec.T_INT32)
+        assert value_of(gcs, own).param_value is not None
+        assert wait_for(lambda: source.on_params_changed_calls > calls, 2.0), "owner not told"
         # persisted once the changes pause, without waiting for the shutdown
         path = tmp_path / "params.parm"
         assert wait_for(lambda: path.exists() and "TST_F" in path.read_text()

@@ -338,3 +338,27 @@ def test_the_manager_owns_thread_ids() -> None:
         mgr.add(_SlowToStop("big", thread_id=300, period_ms=10.0))
     assert [t.name for t in mgr.threads] == ["imu", "mav0rx", "mav0tx"]  # refused, not added
     mgr.shutdown()
+
+
+class _Counting(ManagedThread):
+    def __init__(self, name: str, thread_id: int) -> None:
+        super().__init__(name, thread_id=thread_id, period_ms=5.0, watchdog_ms=1000)
+        self.notified = 0
+
+    def on_params_changed(self) -> None:
+        self.notified += 1
+
+    def step(self) -> bool:
+        return True
+
+
+def test_a_parameter_change_notifies_only_its_owner() -> None:
+    a, b = _Counting("alpha", 1), _Counting("beta", 2)
+    mgr = make_manager(a, b)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: a.cycles > 2 and b.cycles > 2, 5.0)
+        mgr.ctx.params.set("ALPHA_MSG_MS", 250)
+        assert wait_for(lambda: a.notified == 1, 5.0)
+        cycles = b.cycles
+        assert wait_for(lambda: b.cycles > cycles + 5, 5.0)  # beta ran on, and was not told
+        assert b.notified == 0

@@ -263,8 +263,10 @@ class ThreadManager:
 
     def _on_param_changed(self, name: str, value: object) -> None:
         # Runs in the setter's thread: only flag things; the work happens in the main loop.
+        # Only the owner (the thread whose prefix the name carries) re-reads its parameters.
         for t in self.threads:
-            t._mark_params_dirty(name, value)
+            if name.startswith(t.param_prefix + "_"):
+                t._mark_params_dirty(name, value)
         self._wake.set()
 
     def _start_thread(self, t: ManagedThread, *, first: bool = False) -> bool:
