@@ -25,6 +25,7 @@ from companion.core.config import Config
 from companion.core.files import write_json_atomic
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
+from companion.drivers.registry import DEVICES, make_driver
 from companion.estimation.thread import EstimatorThread
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 
@@ -77,19 +78,12 @@ class RuntimeOptions:
 
 
 def build_threads(cfg: Config) -> list[ManagedThread]:
-    """The device and computation threads of one vehicle, in start order."""
-    from companion.drivers.gps import GpsDriver
-    from companion.drivers.imu import ImuDriver
-    from companion.drivers.servo import ServoDriver
-
+    """The device threads of one vehicle, in the device registry's order (their start order)."""
     threads: list[ManagedThread] = []
-    dev = cfg.devices
-    if dev.imu.enabled:
-        threads.append(ImuDriver(dev.imu.port, dev.imu.baud))
-    if dev.gps.enabled:
-        threads.append(GpsDriver(dev.gps.port, dev.gps.baud))
-    if dev.servo.enabled:
-        threads.append(ServoDriver(dev.servo.port, dev.servo.baud))
+    for name in DEVICES:
+        dev = getattr(cfg.devices, name)
+        if dev.enabled:
+            threads.append(make_driver(name, dev.port, dev.baud))
     return threads
 
 

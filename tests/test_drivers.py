@@ -241,3 +241,23 @@ def test_servo_exchange_closes_the_loop(tmp_path: Path) -> None:
         stop.set()
         t.join(2)
         dev.close()
+
+
+def test_every_device_is_one_row_of_the_registry() -> None:
+    """The runtime, the replay tool and the report take their devices from one table."""
+    from companion.core.config import Config
+    from companion.drivers.registry import DEVICES, make_driver
+    from companion.drivers.replay import KINDS
+    from companion.report.headers import PRODUCERS
+    from companion.runtime import build_threads
+
+    assert list(DEVICES) == ["imu", "gps", "servo"] == list(KINDS)
+    assert set(DEVICES) <= set(PRODUCERS)
+    cfg = Config()
+    cfg.devices.gps.enabled = False
+    assert [t.name for t in build_threads(cfg)] == ["imu", "servo"]
+    for name, device in DEVICES.items():
+        drv = make_driver(name, "loop://")
+        assert type(drv).__name__ == device.driver and drv.name == name
+    with pytest.raises(ValueError, match="unknown device 'baro'"):
+        make_driver("baro", "loop://")

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from companion.drivers.registry import DEVICES
+
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from companion.drivers.replay import item_to_json, replay
@@ -33,7 +35,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="feed a raw device capture through the real driver")
-    p.add_argument("kind", choices=["imu", "gps", "servo"])
+    p.add_argument("kind", choices=list(DEVICES))
     p.add_argument("file", type=Path, help="raw bytes as the device sent them")
     p.add_argument("--json", action="store_true", help="print the counter summary as JSON too")
     p.set_defaults(func=cmd_replay)

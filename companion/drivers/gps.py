@@ -83,6 +83,9 @@ class GpsDriver(SerialDevice):
         self._configure()
         return True
 
+    def drain_decoder(self, t_ns: int) -> list[object]:
+        return list(self.decoder.flush(t_ns))
+
     def on_params_changed(self) -> None:
         self._configure()
 

@@ -18,16 +18,14 @@ from typing import Any
 
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry
-from companion.drivers.gps import GpsDriver
+from companion.drivers import registry
 from companion.drivers.gps_protocol import GpsSolution
-from companion.drivers.imu import ImuDriver
 from companion.drivers.imu_protocol import ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
-from companion.drivers.servo import ServoDriver
 from companion.drivers.servo_protocol import PilotFrame
 from companion.watchdog import RuntimeContext, ThreadManager
 
-KINDS = ("imu", "gps", "servo")
+KINDS = tuple(registry.DEVICES)
 
 
 def item_to_json(item: object) -> dict[str, Any]:
@@ -50,15 +48,9 @@ def item_to_json(item: object) -> dict[str, Any]:
 
 
 def make_driver(kind: str, url: str) -> SerialDevice:
-    if kind == "imu":
-        return ImuDriver(url)
-    if kind == "gps":
-        return GpsDriver(url)
-    if kind == "servo":
-        drv = ServoDriver(url)
-        drv.match_seq = False
-        return drv
-    raise ValueError(f"unknown device kind {kind!r} (use one of {', '.join(KINDS)})")
+    drv = registry.make_driver(kind, url)
+    drv.prepare_for_replay()
+    return drv
 
 
 def replay(kind: str, data: bytes, on_item: Callable[[object], None],
@@ -118,9 +110,8 @@ def replay(kind: str, data: bytes, on_item: Callable[[object], None],
             pumper.join(2)
         os.close(master)
         os.close(slave)
-    if isinstance(driver, GpsDriver):
-        for sol in driver.decoder.flush(ctx.clock.realtime_ns()):
-            on_item(sol)
+    for item in driver.drain_decoder(ctx.clock.realtime_ns()):
+        on_item(item)
     counters = driver.counters()
     counters.pop("bytes_out", None)
     return counters

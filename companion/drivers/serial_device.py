@@ -69,6 +69,15 @@ class SerialDevice(ManagedThread):
         self.item_sink: Callable[[object], None] | None = None
 
     # ---------------------------------------------------------------- port handling
+
+    def drain_decoder(self, t_ns: int) -> list[object]:
+        """What the decoder still holds at the end of a replay (a GPS epoch waiting for its
+        last sentence); nothing for frame-by-frame devices."""
+        return []
+
+    def prepare_for_replay(self) -> None:
+        """Called before a recorded capture is played into the port (`companion drivers
+        replay`): a driver that pairs answers with its own requests relaxes that here."""
     def _open(self) -> bool:
         try:
             port = serial.serial_for_url(

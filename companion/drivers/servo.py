@@ -65,6 +65,9 @@ class ServoDriver(SerialDevice):
         self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
         return True
 
+    def prepare_for_replay(self) -> None:
+        self.match_seq = False  # a capture answers commands this driver never sent
+
     def on_params_changed(self) -> None:
         self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
 

@@ -7,31 +7,40 @@ paths in `companion.liveview.entities`. User documentation: docs/report.md.
 
 from __future__ import annotations
 
+import importlib
+from pathlib import Path
 from typing import Any
 
 from companion.core.config import Config
-from companion.liveview.replay import ReplayResult, replay_flight, replay_into
-from companion.liveview.sink import Recording, ViewerError, open_recording
-from companion.liveview.thread import LiveView, LiveViewThread
 
-__all__ = [
-    "LiveView",
-    "live_view_bridges",
-    "LiveViewThread",
-    "Recording",
-    "ReplayResult",
-    "ViewerError",
-    "open_recording",
-    "replay_flight",
-    "replay_into",
-]
+# The rest is imported on first use (PEP 562): importing rerun opens sockets and takes time, and
+# `companion logs ...` commands that draw nothing should pay for neither.
+_LAZY = {
+    "LiveView": "companion.liveview.thread",
+    "LiveViewThread": "companion.liveview.thread",
+    "Recording": "companion.liveview.sink",
+    "ViewerError": "companion.liveview.sink",
+    "open_recording": "companion.liveview.sink",
+    "ReplayResult": "companion.liveview.replay",
+    "replay_flight": "companion.liveview.replay",
+    "replay_into": "companion.liveview.replay",
+}
+
+__all__ = ["live_view_bridges", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)
 
 
 def live_view_bridges(cfg: Config) -> list[Any]:
     """The runtime's `extra_bridges` for the configuration's `[rerun]` table (none when off)."""
     if not (cfg.rerun.enabled or cfg.rerun.save):
         return []
-    from pathlib import Path
+    from companion.liveview.thread import LiveView
 
     save = Path(cfg.rerun.save) if cfg.rerun.save else None
     return [lambda ctx, manager: LiveView(ctx, manager, spawn=cfg.rerun.enabled, save_path=save)]

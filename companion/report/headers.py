@@ -15,6 +15,7 @@ import logging
 from collections.abc import Sequence
 from typing import Any
 
+from companion.drivers.registry import DEVICES
 from companion.logs.records import (
     COMMENT,
     DEFINITION,
@@ -30,9 +31,7 @@ log = logging.getLogger(__name__)
 
 #: log name -> (module, class, constructor positional arguments)
 PRODUCERS: dict[str, tuple[str, str, tuple[Any, ...]]] = {
-    "imu": ("companion.drivers.imu", "ImuDriver", ("loop://",)),
-    "gps": ("companion.drivers.gps", "GpsDriver", ("loop://",)),
-    "servo": ("companion.drivers.servo", "ServoDriver", ("loop://",)),
+    **{d.name: (d.module, d.driver, ("loop://",)) for d in DEVICES.values()},
     "control": ("companion.control", "ControlThread", ()),
     "estimator": ("companion.estimation.thread", "EstimatorThread", ()),
 }
