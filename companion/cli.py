@@ -17,7 +17,8 @@ from typing import Any
 
 from companion import __version__
 from companion.cli_common import add_runtime_arguments, config_from_args, print_summary
-from companion.core.config import Config, ConfigError, load_config
+from companion.core.config import ConfigError, load_config
+from companion.liveview import live_view_bridges
 
 log = logging.getLogger("companion")
 
@@ -115,7 +116,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.servo:
         cfg.devices.servo.port = args.servo
     while True:
-        rt = Runtime(cfg, RuntimeOptions(extra_bridges=_live_view(cfg)))
+        rt = Runtime(cfg, RuntimeOptions(extra_bridges=live_view_bridges(cfg)))
         for issue in rt.param_issues:
             print(f"warning: {issue} (default used)", file=sys.stderr)
         if sys.stderr.isatty() and args.verbose == 0:
@@ -129,15 +130,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         if reason != "reboot":
             return 0
         print("reboot requested: restarting the runtime", file=sys.stderr)
-
-
-def _live_view(cfg: Config) -> list[Any]:
-    """The live view's bridge when `[rerun]` asks for it (rerun is imported only then)."""
-    if not (cfg.rerun.enabled or cfg.rerun.save):
-        return []
-    from companion.liveview import live_view_bridges
-
-    return live_view_bridges(cfg)
 
 
 def _provider(module: str, attr: str) -> Callable[..., Any]:
