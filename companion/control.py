@@ -19,12 +19,12 @@ from typing import Any
 
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import ControlOutput, EstimatorState
+from companion.drivers.servo_protocol import CH_THROTTLE, pilot_switch_auto, us_to_throttle
 from companion.watchdog.thread import ManagedThread
 
 MODE_OFF, MODE_LEVEL, MODE_ATTITUDE, MODE_LEVEL_ALT, MODE_HEADING_ALT = 0, 1, 2, 3, 4
 MODE_NAMES = {MODE_OFF: "off", MODE_LEVEL: "level", MODE_ATTITUDE: "attitude",
               MODE_LEVEL_ALT: "level+alt", MODE_HEADING_ALT: "heading+alt"}
-AUTO_SWITCH_US = 1700  # channel 5 above this: the pilot selected automatic mode
 FMT_CONTROL = 1
 
 
@@ -149,8 +149,7 @@ class ControlThread(ManagedThread):
         servo = self.ctx.state.servo.read()
         if servo is None or servo.failsafe:
             return False, self._throttle
-        throttle = clamp((servo.pilot_us[2] - 1000) / 1000.0, 0.0, 1.0)
-        return servo.pilot_us[4] > AUTO_SWITCH_US, throttle
+        return pilot_switch_auto(servo.pilot_us), us_to_throttle(servo.pilot_us[CH_THROTTLE])
 
     def step(self) -> bool:
         got = self.ctx.state.estimator.wait_newer(

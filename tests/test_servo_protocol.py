@@ -180,3 +180,17 @@ def test_real_frames_survive_any_garbage_between_them(garbage: list[bytes]) -> N
     stream = b"".join(g + f for g, f in zip(garbage, [*frames, b""], strict=True))
     out = PilotDecoder().feed(stream, 0)
     assert [f.seq for f in out if f == pilot(f.seq, 1100 + f.seq)] == list(range(5))
+
+
+def test_the_channel_convention_round_trips_with_the_wire_signs() -> None:
+    """One mapping for the transmitter, the control law, the servo driver and the pilot: a pull
+    (elevator -1, nose up) and right pedal (rudder -1) raise the pulse width."""
+    from companion.drivers.servo_protocol import channels_to_surfaces, surfaces_to_channels
+
+    assert surfaces_to_channels(0.0, 0.0, 0.0, 0.0) == (1500, 1500, 1000, 1500)
+    assert surfaces_to_channels(1.0, -1.0, -1.0, 1.0) == (2000, 2000, 2000, 2000)
+    assert surfaces_to_channels(3.0, 3.0, 3.0, -1.0) == (2000, 1000, 1000, 1000)  # clipped
+    for surfaces in [(0.25, -0.5, 0.1, 0.6), (-1.0, 1.0, -1.0, 0.0)]:
+        back = channels_to_surfaces(surfaces_to_channels(*surfaces))
+        a, e, r, t = surfaces
+        assert back == pytest.approx((a, e, r, t), abs=1e-3)

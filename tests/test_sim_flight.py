@@ -13,6 +13,7 @@ from functools import cache
 import pytest
 
 from companion.core.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
+from companion.drivers.servo_protocol import AUTO_SWITCH_THRESHOLD_US
 from companion.sim.flight import (
     AIRCRAFT,
     DEFAULT_AIRCRAFT,
@@ -23,7 +24,6 @@ from companion.sim.flight import (
 )
 from companion.sim.scenarios import (
     CHANNEL_COUNT,
-    MODE_AUTO_THRESHOLD_US,
     SCENARIOS,
     Pilot,
     channels_from_surfaces,
@@ -376,9 +376,9 @@ def test_auto_scenario_switches_to_automatic_at_twenty_seconds() -> None:
     flight = flown(DEFAULT_AIRCRAFT, "auto", 60.0)
     for s, ch in zip(flight.truths, flight.channels, strict=True):
         if s.time_s <= 19.98:
-            assert ch[4] < MODE_AUTO_THRESHOLD_US
+            assert ch[4] < AUTO_SWITCH_THRESHOLD_US
         elif s.time_s >= 20.02:
-            assert ch[4] > MODE_AUTO_THRESHOLD_US
+            assert ch[4] > AUTO_SWITCH_THRESHOLD_US
     banked = window(flight, 15.0, 20.0)
     assert all(abs(math.degrees(s.roll_rad) - 30.0) < 4.0 for s in banked)
 
@@ -445,9 +445,9 @@ def test_channel_mapping_conventions_and_round_trip() -> None:
     assert surfaces_from_channels([2200, 800, 2400, 600]) == (1.0, 1.0, 1.0, 1.0)  # clipped
     for surfaces in [(0.3, -0.2, 0.1, 0.65), (-1.0, 1.0, -0.5, 0.0), (0.002, 0.0, 0.0, 1.0)]:
         ch = channels_from_surfaces(*surfaces)
-        assert len(ch) == CHANNEL_COUNT and ch[4] < MODE_AUTO_THRESHOLD_US
+        assert len(ch) == CHANNEL_COUNT and ch[4] < AUTO_SWITCH_THRESHOLD_US
         assert surfaces_from_channels(ch) == pytest.approx(surfaces, abs=0.002)
-    assert channels_from_surfaces(0, 0, 0, 0, auto=True)[4] > MODE_AUTO_THRESHOLD_US
+    assert channels_from_surfaces(0, 0, 0, 0, auto=True)[4] > AUTO_SWITCH_THRESHOLD_US
     assert channels_from_surfaces(5.0, -5.0, 0.0, -1.0)[:4] == [2000, 2000, 1000, 1500]
 
 

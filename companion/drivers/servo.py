@@ -19,6 +19,7 @@ from companion.drivers.servo_protocol import (
     PilotFrame,
     ServoCommand,
     encode_command,
+    surfaces_to_channels,
 )
 
 FMT_EXCHANGE = 1
@@ -29,13 +30,7 @@ def surfaces_to_us(out: ControlOutput) -> tuple[int, ...]:
     """Normalised surfaces to pulse widths (+-1 -> 1000..2000 us, throttle 0..1 -> 1000..2000),
     the same mapping the pilot's transmitter uses."""
 
-    def centred(x: float) -> int:
-        return int(round(1500 + 500 * max(-1.0, min(1.0, x))))
-
-    throttle = int(round(1000 + 1000 * max(0.0, min(1.0, out.throttle))))
-    # stick convention on the wire: pulling (nose up) and right pedal raise the pulse width,
-    # while elevator +1 means nose down and rudder +1 nose left in ControlOutput
-    return (centred(out.aileron), centred(-out.elevator), throttle, centred(-out.rudder),
+    return (*surfaces_to_channels(out.aileron, out.elevator, out.rudder, out.throttle),
             0, 0, 0, 0)
 
 

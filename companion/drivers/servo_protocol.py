@@ -39,6 +39,12 @@ __all__ = [
     "encode_command",
     "encode_pilot",
     "pilot_switch_auto",
+    "stick_to_us",
+    "us_to_stick",
+    "throttle_to_us",
+    "us_to_throttle",
+    "surfaces_to_channels",
+    "channels_to_surfaces",
 ]
 
 COMMAND_SYNC = b"\xa5\x5a"
@@ -58,6 +64,11 @@ AUTO_SWITCH_THRESHOLD_US = 1700
 """The pilot's mode switch (channel 5) above this pulse width selects automatic mode."""
 COMMAND_MIN_US = 1000
 COMMAND_MAX_US = 2000
+CENTRE_US = 1500
+HALF_TRAVEL_US = 500
+MODE_MANUAL_US = 1000
+MODE_AUTO_US = 2000
+"""What a two-position mode switch sends on channel 5."""
 MAX_PLAUSIBLE_US = 3000
 """Pulse widths above this cannot come from a receiver; a frame holding one is garbage."""
 
@@ -98,6 +109,44 @@ class PilotFrame:
 def pilot_switch_auto(channels_us: Sequence[int]) -> bool:
     """True when the pilot's mode switch (channel 5) selects automatic mode."""
     return channels_us[CH_MODE] > AUTO_SWITCH_THRESHOLD_US
+
+
+# The channel convention, in one place: the transmitter, the control law, the servo driver, the
+# simulated pilot and the flight report all use these. On the wire a stick right, a pull (nose
+# up) and right pedal raise the pulse width; JSBSim's surfaces (what `ControlOutput` carries)
+# have elevator +1 nose down and rudder +1 nose left, hence the signs below.
+def stick_to_us(x: float) -> int:
+    """A normalised stick (-1..+1, clipped) as a pulse width, 1500 us centred."""
+    return int(round(CENTRE_US + HALF_TRAVEL_US * min(max(x, -1.0), 1.0)))
+
+
+def us_to_stick(us: float) -> float:
+    """A pulse width (clipped to 1000..2000 us) as a normalised stick, -1..+1."""
+    return (min(max(float(us), COMMAND_MIN_US), COMMAND_MAX_US) - CENTRE_US) / HALF_TRAVEL_US
+
+
+def throttle_to_us(t: float) -> int:
+    """Throttle 0..1 (clipped) as a pulse width, 1000..2000 us."""
+    return int(round(COMMAND_MIN_US + (COMMAND_MAX_US - COMMAND_MIN_US) * min(max(t, 0.0), 1.0)))
+
+
+def us_to_throttle(us: float) -> float:
+    """A throttle pulse width (clipped to 1000..2000 us) as 0..1."""
+    clipped = min(max(float(us), COMMAND_MIN_US), COMMAND_MAX_US)
+    return (clipped - COMMAND_MIN_US) / (COMMAND_MAX_US - COMMAND_MIN_US)
+
+
+def surfaces_to_channels(aileron: float, elevator: float, rudder: float,
+                         throttle: float) -> tuple[int, int, int, int]:
+    """JSBSim-convention surfaces as channels 1..4 (aileron, elevator, throttle, rudder), us."""
+    return (stick_to_us(aileron), stick_to_us(-elevator), throttle_to_us(throttle),
+            stick_to_us(-rudder))
+
+
+def channels_to_surfaces(channels_us: Sequence[float]) -> tuple[float, float, float, float]:
+    """Channels 1..4 (us) as JSBSim-convention (aileron, elevator, rudder, throttle)."""
+    return (us_to_stick(channels_us[CH_AILERON]), -us_to_stick(channels_us[CH_ELEVATOR]),
+            -us_to_stick(channels_us[CH_RUDDER]), us_to_throttle(channels_us[CH_THROTTLE]))
 
 
 def _xor(data: bytes | bytearray, start: int, stop: int) -> int:

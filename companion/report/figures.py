@@ -21,6 +21,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from companion.core.geo import NedFrame
+from companion.drivers.servo_protocol import CENTRE_US, HALF_TRAVEL_US
 from companion.report.analysis import (
     PERIOD_SOURCES,
     Track,
@@ -50,8 +51,8 @@ STYLE: dict[str, Any] = {
     "agg.path.chunksize": 20000,
 }
 
-PULSE_CENTRE_US = 1500.0
-PULSE_HALF_RANGE_US = 500.0
+PULSE_CENTRE_US = float(CENTRE_US)
+PULSE_HALF_RANGE_US = float(HALF_TRAVEL_US)
 
 
 class MissingData(LookupError):

@@ -37,20 +37,20 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, fields
 from typing import NamedTuple, Protocol
 
+from companion.drivers.servo_protocol import (
+    CENTRE_US,
+    MODE_AUTO_US,
+    MODE_MANUAL_US,
+    channels_to_surfaces,
+    stick_to_us,
+    throttle_to_us,
+)
 from companion.sim.flight import DEFAULT_AIRCRAFT, AircraftSpec, TruthState, resolve_aircraft
 
 G_M_S2 = 9.80665
 """Standard gravity."""
 
 CHANNEL_COUNT = 8
-CENTRE_US = 1500
-MIN_US = 1000
-MAX_US = 2000
-MODE_MANUAL_US = 1000
-MODE_AUTO_US = 2000
-MODE_AUTO_THRESHOLD_US = 1700
-"""Channel 5 above this pulse width means the pilot's switch is on automatic."""
-_HALF_RANGE_US = 500.0
 _ACCEPT_MIN_US = 500
 _ACCEPT_MAX_US = 2500
 
@@ -112,14 +112,8 @@ def surfaces_from_channels(ch_us: Sequence[int]) -> Surfaces:
                 f"surfaces_from_channels: channel {i + 1} pulse width {value!r} us is outside "
                 f"{_ACCEPT_MIN_US}..{_ACCEPT_MAX_US}"
             )
-        clipped.append(min(max(float(value), MIN_US), MAX_US))
-    ail_us, ele_us, thr_us, rud_us = clipped
-    return Surfaces(
-        aileron=(ail_us - CENTRE_US) / _HALF_RANGE_US,
-        elevator=-(ele_us - CENTRE_US) / _HALF_RANGE_US,
-        rudder=-(rud_us - CENTRE_US) / _HALF_RANGE_US,
-        throttle=(thr_us - MIN_US) / (MAX_US - MIN_US),
-    )
+        clipped.append(float(value))
+    return Surfaces(*channels_to_surfaces(clipped))
 
 
 def channels_from_surfaces(
@@ -142,14 +136,11 @@ def channels_from_surfaces(
 
 
 def _channels(roll: float, pull: float, yaw_right: float, throttle: float, auto: bool) -> list[int]:
-    def centred(x: float) -> int:
-        return int(round(CENTRE_US + _HALF_RANGE_US * min(max(x, -1.0), 1.0)))
-
     return [
-        centred(roll),
-        centred(pull),
-        int(round(MIN_US + (MAX_US - MIN_US) * min(max(throttle, 0.0), 1.0))),
-        centred(yaw_right),
+        stick_to_us(roll),
+        stick_to_us(pull),
+        throttle_to_us(throttle),
+        stick_to_us(yaw_right),
         MODE_AUTO_US if auto else MODE_MANUAL_US,
         CENTRE_US,
         CENTRE_US,
