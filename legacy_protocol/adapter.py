@@ -68,10 +68,6 @@ def _bind_patiently(sock: socket.socket, addr: tuple[str, int]) -> None:
             time.sleep(0.02)
 
 
-_ZERO_MEANS_UNLIMITED = frozenset({"MGR_EXEC_TIME_S"})
-"""Values for which the protocol gives 0 a meaning (no execution time limit), not a period."""
-
-
 @dataclass
 class LegacyCounters:
     received: int = 0
@@ -308,11 +304,9 @@ class LegacyAdapter:
 
     def _set_all(self, cmd: PendingCommand, changes: dict[str, int]) -> None:
         """All or nothing, through the registry's one path (its rules between parameters
-        included), so a refused command changes nothing."""
+        included), so a refused command changes nothing. A zero period or granularity is below
+        its parameter's range; an execution time of 0 (unlimited) is inside its range."""
         try:
-            for name, value in changes.items():
-                if value <= 0 and not (value == 0 and name in _ZERO_MEANS_UNLIMITED):
-                    raise ParamError(name, "must be positive")
             self.ctx.params.set_many(changes)
         except ParamError as exc:
             log.info("legacy command refused: %s", exc)

@@ -18,6 +18,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -260,13 +261,17 @@ class ParamRegistry:
     def add_rule(self, rule: Rule) -> Callable[[], None]:
         """Register a rule between parameters, checked on every change from any source (MAVLink,
         the legacy protocol, a file, the console); returns a function that removes it."""
+        return self._register(self._rules, rule)
+
+    def _register(self, items: list[Any], item: Any) -> Callable[[], None]:
+        """Append `item` under the lock; the returned function removes it (idempotent)."""
         with self._lock:
-            self._rules.append(rule)
+            items.append(item)
 
         def remove() -> None:
             with self._lock:
-                if rule in self._rules:
-                    self._rules.remove(rule)
+                if item in items:
+                    items.remove(item)
 
         return remove
 
@@ -283,14 +288,9 @@ class ParamRegistry:
             coerced[name] = spec.validate(value)
         with self._lock:
             rules = list(self._rules)
-            current = dict(self._values)
-        current.update(coerced)
 
         def value_of(other: str) -> ParamValue:
-            try:
-                return current[other]
-            except KeyError:
-                raise ParamError(other, "unknown parameter", ParamErrorKind.UNKNOWN) from None
+            return coerced[other] if other in coerced else self.get(other)
 
         for name, value in coerced.items():
             for rule in rules:
@@ -329,15 +329,7 @@ class ParamRegistry:
 
     def subscribe(self, listener: Listener) -> Callable[[], None]:
         """Call `listener(name, value)` after every change; returns an unsubscribe function."""
-        with self._lock:
-            self._listeners.append(listener)
-
-        def unsubscribe() -> None:
-            with self._lock:
-                if listener in self._listeners:
-                    self._listeners.remove(listener)
-
-        return unsubscribe
+        return self._register(self._listeners, listener)
 
     # -- persistence -------------------------------------------------------------------------
     def attach_file(self, path: Path) -> list[FileIssue]:

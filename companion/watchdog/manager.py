@@ -142,9 +142,8 @@ class ThreadManager:
             raise RuntimeError("threads must be added before the manager starts")
         if self.find(t.name) is not None:
             raise ValueError(f"a thread named {t.name!r} exists already")
-        self._assign_id(t)  # refuses before the thread joins the list
+        self._adopt(t)  # assigns or checks its id first: a refused thread never joins the list
         self.threads.append(t)
-        self._adopt(t)
 
     # ---------------------------------------------------------------- public, any thread
     def post(self, command: ManagerCommand) -> bool:
