@@ -376,9 +376,8 @@ def bench_cpu(duration_s: float) -> list[str]:
         gcs = MiniGcs(listen_port=port)
         with SyntheticVehicle([f"udpout:127.0.0.1:{port}{rates}"]) as v:
             gcs.collect(1.0)
-            ids = {t.name: t._worker.native_id or 0 for t in v.bridge.threads
-                   if t._worker is not None}
-            src_ids = [t._worker.native_id or 0 for t in v.sources if t._worker is not None]
+            ids = {t.name: t.native_id or 0 for t in v.bridge.threads if t.native_id}
+            src_ids = [t.native_id or 0 for t in v.sources if t.native_id]
             c0, w0 = thread_cpu_s(), time.perf_counter()
             n0 = v.bridge.stats()[0]["tx_frames"]
             gcs.collect(duration_s)

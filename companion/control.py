@@ -20,7 +20,8 @@ from typing import Any
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import ControlOutput, EstimatorState
 from companion.drivers.servo_protocol import CH_THROTTLE, pilot_switch_auto, us_to_throttle
-from companion.watchdog.thread import ManagedThread
+from companion.tasks import VEHICLE_TASKS
+from companion.watchdog.thread import ManagedThread, Task
 
 MODE_OFF, MODE_LEVEL, MODE_ATTITUDE, MODE_LEVEL_ALT, MODE_HEADING_ALT = 0, 1, 2, 3, 4
 MODE_NAMES = {MODE_OFF: "off", MODE_LEVEL: "level", MODE_ATTITUDE: "attitude",
@@ -70,9 +71,8 @@ class _Settings:
 
 
 class ControlThread(ManagedThread):
-    def __init__(self, *, name: str = "control", thread_id: int = 5) -> None:
-        super().__init__(name, thread_id=thread_id, watchdog_ms=1000, message_ms=1000,
-                         budget_ms=2.0, param_prefix="CTL")
+    def __init__(self, *, task: Task = VEHICLE_TASKS["control"]) -> None:
+        super().__init__(task)
         self._seen = 0
         self._engaged = False
         self._alt_sp_m = 0.0
@@ -83,8 +83,8 @@ class ControlThread(ManagedThread):
         self.pitch_pid = Pid(2.0, 0.3, 0.3, 0.3)
         self._settings: _Settings | None = None  # read on start and on a change, not per step
 
-    def declare_params(self) -> list[ParamSpec]:
-        p = self.param_prefix
+    @classmethod
+    def declare_params(cls, p: str) -> list[ParamSpec]:
         return [
             int_param(f"{p}_MODE", MODE_LEVEL_ALT, 0, 4, "",
                       "Control law: 0 off, 1 wings level, 2 attitude hold, 3 wings level + "

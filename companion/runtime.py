@@ -16,18 +16,18 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from companion import __version__
-from companion.control import ControlThread
 from companion.core.clock import Clock
 from companion.core.config import Config
 from companion.core.files import write_json_atomic
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
 from companion.drivers.registry import DEVICES, make_driver
-from companion.estimation.thread import EstimatorThread
-from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
+from companion.tasks import VEHICLE_TASKS
+from companion.watchdog import ManagedThread, RuntimeContext, Task, ThreadManager
+from companion.watchdog.manager import MANAGER_PARAMS
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ def new_flight_dir(root: Path, *, suffix: str = "") -> Path:
     raise RuntimeError(f"cannot create a flight directory under {root}")
 
 
-BridgeFactory = Callable[[RuntimeContext, ThreadManager], Any]
+BridgeFactory = Callable[[RuntimeContext, ThreadManager], "Bridge"]
 """Makes a bridge for a runtime being built; the bridge may add threads to the manager."""
 
 
@@ -77,23 +77,40 @@ class RuntimeOptions:
     the runtime (the live view) attach without the runtime importing them. Not built when dry."""
 
 
-def build_threads(cfg: Config) -> list[ManagedThread]:
-    """The device threads of one vehicle, in the device registry's order (their start order)."""
+def vehicle_tasks(cfg: Config, opts: RuntimeOptions) -> list[Task]:
+    """The rows of the task table this vehicle runs, in the table's (start) order: a device's
+    row when its `[devices.<name>]` is enabled, the estimator and control unless switched off."""
+    wanted = {"estimator": opts.estimator, "control": opts.control}
+    rows = []
+    for name, row in VEHICLE_TASKS.items():
+        if name in DEVICES:
+            if getattr(cfg.devices, name).enabled:
+                rows.append(row)
+        elif wanted.get(name, True):
+            rows.append(row)
+    return rows
+
+
+def build_threads(cfg: Config, opts: RuntimeOptions | None = None) -> list[ManagedThread]:
+    """One thread per row of `vehicle_tasks`, each built by its class from its row."""
     threads: list[ManagedThread] = []
-    for name in DEVICES:
-        dev = getattr(cfg.devices, name)
-        if dev.enabled:
-            threads.append(make_driver(name, dev.port, dev.baud))
+    for row in vehicle_tasks(cfg, opts or RuntimeOptions()):
+        if row.name in DEVICES:
+            dev = getattr(cfg.devices, row.name)
+            threads.append(make_driver(row.name, dev.port, dev.baud))
+        else:
+            make: Callable[[], ManagedThread] = row.thread_class()  # built from its own row
+            threads.append(make())
     return threads
 
 
-def build_computation(opts: RuntimeOptions) -> list[ManagedThread]:
-    threads: list[ManagedThread] = []
-    if opts.estimator:
-        threads.append(EstimatorThread())
-    if opts.control:
-        threads.append(ControlThread())
-    return threads
+class Bridge(Protocol):
+    """What the runtime asks of everything that talks to the ground (MAVLink, the legacy
+    protocol, the live view): to be closed after the manager stopped, and its message counts."""
+
+    def close(self) -> None: ...
+
+    def stats(self) -> list[dict[str, Any]]: ...
 
 
 class Runtime:
@@ -120,9 +137,8 @@ class Runtime:
         self.ctx = RuntimeContext(clock=clock, params=params, logs=self.logs,
                                   state=VehicleState(), vehicle_id=cfg.vehicle.id,
                                   home_lla=cfg.vehicle.home_lla(), flight_dir=self.flight_dir)
-        threads = build_threads(cfg) + build_computation(self.opts)
-        self.manager = ThreadManager(self.ctx, threads)
-        self.bridges: list[Any] = []
+        self.manager = ThreadManager(self.ctx, build_threads(cfg, self.opts))
+        self.bridges: list[Bridge] = []
         try:
             self._build_bridges(cfg, dry)
         except BaseException:
@@ -212,12 +228,10 @@ class Runtime:
         self.manager.shutdown()
         self._collect_events()
         for bridge in self.bridges:
-            close = getattr(bridge, "close", None)
-            if close is not None:
-                try:
-                    close()
-                except Exception:
-                    log.exception("closing bridge %s", type(bridge).__name__)
+            try:
+                bridge.close()
+            except Exception:
+                log.exception("closing bridge %s", type(bridge).__name__)
         if self.logs is not None:
             self.logs.close()
             self.logs = None
@@ -257,20 +271,38 @@ class Runtime:
                  "crashes": s.crashes, "interrupted": s.interrupted, "abandoned": s.abandoned,
                  "missed_deadlines": s.missed_deadlines,
                  "log_dropped": s.log_dropped,
-                 **({"counters": t.counters()} if hasattr(t, "counters") else {})}
+                 **({"counters": c} if (c := t.counters()) else {})}
                 for s, t in zip(self.manager.thread_status(), self.manager.threads, strict=True)
             ],
             "files": {p.name: p.stat().st_size for p in files},
             "events": list(self.event_log),
-            "messages": [s for b in self.bridges if hasattr(b, "stats") for s in b.stats()],
+            "messages": [s for b in self.bridges for s in b.stats()],
         }
 
 
+def declared_specs(cfg: Config) -> list[ParamSpec]:
+    """Every parameter the runtime declares for `cfg`, read from the task rows and the bridges'
+    declarations: nothing is built, opened or bound."""
+    specs = list(RUNTIME_PARAMS) + list(MANAGER_PARAMS)
+    for row in vehicle_tasks(cfg, RuntimeOptions()):
+        specs += row.param_specs()
+    if cfg.mavlink.endpoints:
+        from gcs_bridge.bridge import declared_params as mavlink_params
+
+        specs += mavlink_params(len(cfg.mavlink.endpoints))
+    if cfg.legacy.enabled:
+        from legacy_protocol.adapter import declared_params as legacy_params
+
+        specs += legacy_params()
+    return specs
+
+
 def declared_registry(cfg: Config) -> ParamRegistry:
-    """Every parameter the runtime would declare for `cfg`, at its default, without running."""
-    rt = Runtime(cfg, RuntimeOptions(dry=True))
-    rt.shutdown()
-    return rt.ctx.params
+    """A registry holding `declared_specs(cfg)` at their defaults (docs, `companion params`)."""
+    reg = ParamRegistry()
+    reg.declare_all(declared_specs(cfg))
+    reg.set("SYS_VEHICLE_ID", cfg.vehicle.id, force=True)
+    return reg
 
 
 def status_line(manager: ThreadManager) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.core.config import ConfigError
+from companion.core.params import ParamSpec
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import status
 from gcs_bridge.commands import CommandHandler, LoggingControl
@@ -22,7 +23,7 @@ from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dialect import Identity
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
-from gcs_bridge.link import Link, LinkReceiver, LinkSender
+from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
 from gcs_bridge.param_protocol import ParamProtocol
 from gcs_bridge.signing import LinkPolicy, read_key_file
 
@@ -31,6 +32,14 @@ log = logging.getLogger(__name__)
 MAX_LINKS = 10  # thread parameter prefixes MAV<n>RX / MAV<n>TX have room for one digit
 PERSIST_QUIET_S = 0.2  # parameters are saved once changes pause this long...
 PERSIST_MAX_DELAY_S = 2.0  # ...or at the latest this long after the first unsaved change
+
+
+def declared_params(n_links: int) -> list[ParamSpec]:
+    """The bridge's parameters with `n_links` endpoints, without building it (docs)."""
+    specs = list(BRIDGE_PARAMS)
+    for index in range(n_links):
+        specs += receiver_task(index).param_specs() + sender_task(index).param_specs()
+    return specs
 
 
 class MavlinkBridge:
@@ -91,8 +100,8 @@ class MavlinkBridge:
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,
                         broadcast_text=self.broadcast_text)
-            rx = LinkReceiver(link, 0)  # the manager hands out the ids
-            tx = LinkSender(link, 0)
+            rx = LinkReceiver(link)  # the manager hands out the ids
+            tx = LinkSender(link)
             manager.add(rx)
             manager.add(tx)
             self.links.append(link)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from companion.core.sync import MessageQueue
-from companion.watchdog import ManagedThread, ThreadStatus, WatchdogEvent
+from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
 from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, RxMessage, mavlink
@@ -376,12 +376,25 @@ class Link:
 
 
 # ---------------------------------------------------------------------------------- threads
+def receiver_task(index: int) -> Task:
+    """Link `index`'s receive thread: paced by the transport's bounded wait."""
+    return Task(f"mav{index}rx", paced_by="the transport (bounded wait)", budget_ms=5.0,
+                watchdog_ms=1000, message_ms=5000,
+                implementation="gcs_bridge.link:LinkReceiver")
+
+
+def sender_task(index: int) -> Task:
+    """Link `index`'s send thread: paced by the earliest due message or queued answer."""
+    return Task(f"mav{index}tx", paced_by="due telemetry and queued answers", budget_ms=5.0,
+                watchdog_ms=1000, message_ms=5000,
+                implementation="gcs_bridge.link:LinkSender")
+
+
 class LinkReceiver(ManagedThread):
     """Receives for one link; paced by the transport with a bounded wait."""
 
-    def __init__(self, link: Link, thread_id: int) -> None:
-        super().__init__(f"mav{link.index}rx", thread_id=thread_id, watchdog_ms=1000,
-                         message_ms=5000, budget_ms=5.0)
+    def __init__(self, link: Link) -> None:
+        super().__init__(receiver_task(link.index))
         self.link = link
 
     def setup(self) -> None:
@@ -410,9 +423,8 @@ class LinkSender(ManagedThread):
     Its own `<PREFIX>_MSG_MS` paces the link's statistics (named values `L<n>_...`).
     """
 
-    def __init__(self, link: Link, thread_id: int) -> None:
-        super().__init__(f"mav{link.index}tx", thread_id=thread_id, watchdog_ms=1000,
-                         message_ms=5000, budget_ms=5.0)
+    def __init__(self, link: Link) -> None:
+        super().__init__(sender_task(link.index))
         self.link = link
         self._wait_host_s = 0.0
         self._next_stats_ns = 0

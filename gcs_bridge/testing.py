@@ -23,6 +23,7 @@ from typing import Any
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, ParamSpec
 from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.tasks import VEHICLE_TASKS
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
@@ -58,21 +59,22 @@ class SyntheticSource(ManagedThread):
     """Publishes one kind of synthetic data ("imu", "gps", "servo" or "estimator")."""
 
     RATES_HZ = {"imu": 100.0, "gps": 10.0, "servo": 50.0, "estimator": 100.0}
-    IDS = {"imu": 1, "gps": 2, "servo": 3, "estimator": 4}
 
     def __init__(self, kind: str, *, extra_params: Sequence[ParamSpec] = ()) -> None:
         if kind not in self.RATES_HZ:
             raise ValueError(f"unknown synthetic source {kind!r}")
-        super().__init__(kind, thread_id=self.IDS[kind], period_ms=1000.0 / self.RATES_HZ[kind],
-                         watchdog_ms=500, message_ms=1000)
+        # the vehicle's row (name, id, prefix) on a timer instead of a device
+        super().__init__(VEHICLE_TASKS[kind].replace(
+            period_ms=1000.0 / self.RATES_HZ[kind], budget_ms=None, watchdog_ms=500,
+            implementation=""))
         self.kind = kind
         self.extra_params = list(extra_params)
         self.counter = 0
         self.battery_raw = [98, 95]
         self.on_params_changed_calls = 0
 
-    def declare_params(self) -> list[ParamSpec]:
-        return list(self.extra_params)
+    def param_specs(self) -> list[ParamSpec]:
+        return super().param_specs() + list(self.extra_params)
 
     def on_params_changed(self) -> None:
         self.on_params_changed_calls += 1

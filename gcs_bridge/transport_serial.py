@@ -8,6 +8,7 @@ import time
 
 import serial
 
+from companion.core.serialport import OPEN_ERRORS, open_serial_port
 from gcs_bridge.endpoints import Endpoint
 from gcs_bridge.transport import (
     RECONNECT_MAX_S,
@@ -52,9 +53,9 @@ class SerialTransport(Transport):
     def _try_open(self) -> None:
         ep = self.endpoint
         try:
-            port = serial.serial_for_url(ep.device, baudrate=ep.baud, timeout=self._read_timeout_s,
-                                         write_timeout=SERIAL_WRITE_TIMEOUT_S)
-        except (serial.SerialException, OSError, ValueError) as exc:
+            port = open_serial_port(ep.device, ep.baud, read_timeout_s=self._read_timeout_s,
+                                    write_timeout_s=SERIAL_WRITE_TIMEOUT_S)
+        except OPEN_ERRORS as exc:
             self._open_failures += 1
             if self._open_failures in (1, 10) or self._open_failures % 100 == 0:
                 log.warning("%s: cannot open (%s); retrying", ep.url, exc)

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from companion.core.config import ConfigError
-from companion.core.params import ParamError
+from companion.core.params import ParamError, ParamSpec
 from companion.core.state import HorizonMeasurement
 from companion.core.sync import MessageQueue
-from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, ThreadManager
+from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, Task, ThreadManager
 from legacy_protocol import codec
 from legacy_protocol.codec import AckResult, MsgType
 
@@ -88,11 +88,17 @@ class PendingCommand:
     addr: tuple[str, int]
 
 
+RX_TASK = Task("legacy-rx", paced_by="the socket (0.1 s wait)", watchdog_ms=2000,
+               message_ms=1000, param_prefix="LEGRX",
+               implementation="legacy_protocol.adapter:_Rx")
+TX_TASK = Task("legacy-tx", period_ms=10.0, budget_ms=5.0, watchdog_ms=1000, message_ms=1000,
+               param_prefix="LEGTX", implementation="legacy_protocol.adapter:_Tx")
+"""The legacy protocol's two rows; the manager hands out their ids."""
+
+
 class _Rx(ManagedThread):
     def __init__(self, adapter: LegacyAdapter) -> None:
-        super().__init__(
-            "legacy-rx", thread_id=0, watchdog_ms=2000, message_ms=1000, param_prefix="LEGRX"
-        )
+        super().__init__(RX_TASK)
         self.adapter = adapter
 
     def interrupt_io(self) -> None:
@@ -105,20 +111,17 @@ class _Rx(ManagedThread):
 
 class _Tx(ManagedThread):
     def __init__(self, adapter: LegacyAdapter) -> None:
-        super().__init__(
-            "legacy-tx",
-            thread_id=0,
-            period_ms=10.0,
-            watchdog_ms=1000,
-            message_ms=1000,
-            param_prefix="LEGTX",
-            budget_ms=5.0,
-        )
+        super().__init__(TX_TASK)
         self.adapter = adapter
 
     def step(self) -> bool:
         self.adapter.send_due()
         return True
+
+
+def declared_params() -> list[ParamSpec]:
+    """The adapter's parameters (its two threads'), without building it (docs)."""
+    return RX_TASK.param_specs() + TX_TASK.param_specs()
 
 
 class LegacyAdapter:

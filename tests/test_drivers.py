@@ -255,7 +255,7 @@ def test_every_device_is_one_row_of_the_registry() -> None:
     assert set(DEVICES) <= set(PRODUCERS)
     cfg = Config()
     cfg.devices.gps.enabled = False
-    assert [t.name for t in build_threads(cfg)] == ["imu", "servo"]
+    assert [t.name for t in build_threads(cfg)] == ["imu", "servo", "estimator", "control"]
     for name, device in DEVICES.items():
         drv = make_driver(name, "loop://")
         assert type(drv).__name__ == device.driver and drv.name == name

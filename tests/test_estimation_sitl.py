@@ -146,7 +146,7 @@ def test_replica_matches_the_estimator_thread_sample_by_sample(turns: SitlRecord
     queue = _WatchedQueue()
     thread = EstimatorThread()
     thread.ctx = RuntimeContext(state=VehicleState(imu_stream=queue), home_lla=turns.home_lla)
-    thread.ctx.params.declare_all(thread.base_params() + thread.declare_params())
+    thread.ctx.params.declare_all(thread.param_specs())
     init_fix = turns.gps[max(k for k in turns.gps if k <= init)]
     thread.ctx.state.gps.write(init_fix)
     result: list[bool] = []

@@ -64,7 +64,7 @@ def test_identity_and_every_stream_at_its_threads_rate() -> None:
             mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_PX4, 3)
         p = v.params
         for name, ms in [("IMU_MSG_MS", 100), ("GPS_MSG_MS", 200), ("SERVO_MSG_MS", 100),
-                         ("ESTIMA_MSG_MS", 50), ("MGR_MSTAT_MS", 500), ("MGR_STATUS_MS", 250)]:
+                         ("EST_MSG_MS", 50), ("MGR_MSTAT_MS", 500), ("MGR_STATUS_MS", 250)]:
             p.set(name, ms)
         gcs.collect(0.3)  # let the new periods take over
         n = rates(gcs, 2.0)

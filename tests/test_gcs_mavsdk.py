@@ -55,7 +55,7 @@ def test_discover_and_telemetry() -> None:
     port = free_udp_port()
     with SyntheticVehicle([f"udpout:127.0.0.1:{port}"], vehicle_id=3) as v, mavsdk_on(port) as system:
         assert system.get_system_id() == 3 and system.has_autopilot()
-        v.params.set("ESTIMA_MSG_MS", 50)
+        v.params.set("EST_MSG_MS", 50)
         telemetry = Telemetry(system)
         attitude: list[Any] = []
         position: list[Any] = []

@@ -261,10 +261,10 @@ def test_intervals_override_disable_and_default() -> None:
 
 
 def test_stream_periods_come_from_the_source_threads() -> None:
-    core = make_core(Idle("estimator", thread_id=4, message_ms=250))
+    core = make_core(Idle("estimator", thread_id=4, message_ms=250, param_prefix="EST"))
     sched = streams.StreamScheduler(core)
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 250_000
-    core.ctx.params.set("ESTIMA_MSG_MS", 40)
+    core.ctx.params.set("EST_MSG_MS", 40)
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) == 40_000
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT) == 1_000_000  # no GPS thread
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SYS_STATUS) == 2_000_000  # MGR_MSTAT_MS
@@ -276,14 +276,14 @@ def test_stream_periods_come_from_the_source_threads() -> None:
 
 
 def test_a_shorter_message_period_applies_at_once() -> None:
-    core = make_core(Idle("estimator", thread_id=4, message_ms=1000))
+    core = make_core(Idle("estimator", thread_id=4, message_ms=1000, param_prefix="EST"))
     sched = streams.StreamScheduler(core, only([mavlink.MAVLINK_MSG_ID_ATTITUDE]))
     link = FakeLink()
     ms = 1_000_000
     core.ctx.state.estimator.write(est())
     sched.service(0, link, link.emit)
     assert len(link.sent) == 1
-    core.ctx.params.set("ESTIMA_MSG_MS", 100)
+    core.ctx.params.set("EST_MSG_MS", 100)
     sched.service(150 * ms, link, link.emit)  # periods re-read: next one due at 250 ms
     sched.service(250 * ms, link, link.emit)  # due: waits for the next sample
     core.ctx.state.estimator.write(est())

@@ -187,10 +187,7 @@ def test_transient_exit_is_not_restarted_but_permanent_is() -> None:
 
     transient = Once("once", thread_id=1, watchdog_ms=50)
 
-    class Forever(Once):
-        restart = RestartType.PERMANENT
-
-    permanent = Forever("forever", thread_id=2, watchdog_ms=50)
+    permanent = Once("forever", thread_id=2, watchdog_ms=50, restart=RestartType.PERMANENT)
     mgr = make_manager(transient, permanent, MGR_RST_INTENS=3)
     with RunInBackground(mgr):
         assert wait_for(lambda: permanent.failed, 5.0)
@@ -210,7 +207,7 @@ def test_restart_command_and_enable_parameter() -> None:
         assert replies[0] == (True, "") and replies[1][0] is False and "nope" in replies[1][1]
         assert t.restarts == 1
         mgr.ctx.params.set("TICK_ENABLE", 0)
-        assert wait_for(lambda: t._worker is None and not t.running, 2.0)
+        assert wait_for(lambda: not t.has_worker and not t.running, 2.0)
         cycles = t.cycles
         time.sleep(0.1)  # nothing to wait for: checking that nothing happens
         assert t.cycles == cycles

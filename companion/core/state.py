@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from companion.core.logged import logged
 from companion.core.sync import DataSlot, MessageQueue, WaitableSlot
 
 Vec3 = tuple[float, float, float]
@@ -40,27 +41,32 @@ class ImuSlowSample:
 
 @dataclass(frozen=True)
 class GpsFix:
-    """One GPS solution (one epoch); None where the receiver did not say."""
+    """One GPS solution (one epoch) as the flight uses it; None where the receiver did not say.
 
-    t_ns: int  # hand-off time, runtime clock
-    utc_s: float | None  # seconds since midnight UTC of the epoch
-    lat_deg: float | None
-    lon_deg: float | None
-    alt_m: float | None  # above mean sea level
-    fix: int  # 0 none, 1 GPS, 2 DGPS, 3 RTK
-    sats: int | None
-    hdop: float | None = None
-    pdop: float | None = None
-    vdop: float | None = None
-    tdop: float | None = None
-    speed_m_s: float | None = None
-    course_deg: float | None = None
-    vn_m_s: float | None = None
-    ve_m_s: float | None = None
-    vd_m_s: float | None = None
-    alt_std_m: float | None = None
-    h_std_m: float | None = None
-    latency_s: float | None = None
+    This is also the GPS driver's log record: each `logged` field is a column of `gps.bin`
+    format 1, in this order, so the record, its log format and its log call cannot disagree.
+    """
+
+    t_ns: int  # hand-off time, runtime clock (the log record's own time stamp)
+    utc_s: float | None = logged("%.3f")  # seconds since midnight UTC of the epoch
+    lat_deg: float | None = logged("%.9lf")
+    lon_deg: float | None = logged("%.9lf")
+    alt_m: float | None = logged("%.3f")  # above mean sea level
+    fix: int = logged("%hhu", default=0)  # 0 none, 1 GPS, 2 DGPS, 3 RTK
+    sats: int | None = logged("%hhu")
+    hdop: float | None = logged("%.2f")
+    pdop: float | None = logged("%.2f")
+    vdop: float | None = logged("%.2f")
+    tdop: float | None = logged("%.2f")
+    speed_m_s: float | None = logged("%.3f")
+    course_deg: float | None = logged("%.2f")
+    vn_m_s: float | None = logged("%.3f")
+    ve_m_s: float | None = logged("%.3f")
+    vd_m_s: float | None = logged("%.3f")
+    alt_std_m: float | None = logged("%.3f")
+    h_std_m: float | None = logged("%.3f")
+    latency_s: float | None = logged("%.2f", column="latency_ms", scale=1e3)
+    """Receiver-to-driver latency as measured by the driver (first byte to hand-off)."""
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,11 @@
 """Base class of every serial-device driver thread: owns the port, reconnects, counts errors.
 
-A driver subclass only decodes and encodes frames (`on_bytes`); everything about the port lives
-here, as python-can's BusABC does for CAN interfaces. Ports are opened with
-`serial.serial_for_url`, so a device path, a pseudo-terminal or `loop://` all work.
+The base owns the whole path of a device-paced driver, read -> log raw -> decode -> publish, as
+python-can's BusABC owns everything about a CAN interface; a driver supplies `decode` (bytes to
+items) and `publish` (an item to the vehicle state and its own log), and says which log format
+keeps its raw bytes. A driver that must write before it reads (the servo board) overrides
+`step` and still publishes through `publish`. Ports are opened with `open_serial_port`, so a
+device path, a pseudo-terminal or `loop://` all work, as for the telemetry radio.
 
 A port that disappears (USB unplugged, pseudo-terminal closed) is closed and reopened with
 exponential back-off; meanwhile `step` keeps returning False, which the watchdog reports as a
@@ -13,13 +16,15 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import serial
 
-from companion.watchdog.thread import ManagedThread
+from companion.core.params import ParamSpec, int_param
+from companion.core.serialport import open_serial_port
+from companion.watchdog.thread import ManagedThread, Task
 
 log = logging.getLogger(__name__)
 
@@ -44,18 +49,20 @@ class SerialDevice(ManagedThread):
     `read_timeout_s`, so a stop request is seen within that time even if the device is silent.
     """
 
+    #: Log format index that keeps the device's raw bytes (a capture `companion drivers replay`
+    #: plays back); None: the driver logs no raw bytes and has no `<PREFIX>_LOG_RAW` parameter.
+    raw_format: int | None = None
+
     def __init__(
         self,
-        name: str,
+        task: Task,
         *,
-        thread_id: int,
         url: str,
         baudrate: int = 115200,
         read_timeout_s: float = 0.05,
         read_size: int = 256,
-        **kwargs: Any,
     ) -> None:
-        super().__init__(name, thread_id=thread_id, **kwargs)
+        super().__init__(task)
         self.url = url
         self.baudrate = baudrate
         self.read_timeout_s = read_timeout_s
@@ -67,6 +74,59 @@ class SerialDevice(ManagedThread):
         self._ever_opened = False
         #: Called with every decoded item (replay tools, tests); None in flight.
         self.item_sink: Callable[[object], None] | None = None
+        self.log_raw = self.raw_format is not None
+
+    # ---------------------------------------------------------------- what a driver supplies
+    @classmethod
+    def declare_params(cls, prefix: str) -> list[ParamSpec]:
+        if cls.raw_format is None:
+            return []
+        return [int_param(f"{prefix}_LOG_RAW", 1, 0, 1, "",
+                          "1 logs the device's raw bytes too (a capture that `companion drivers "
+                          "replay` plays back).")]
+
+    def define_logs(self, tlog: Any) -> None:
+        """Subclasses define their decoded formats, then call this for the raw one."""
+        if self.raw_format is not None:
+            tlog.define(self.raw_format, "%02hhX", ["raw_bytes"])
+
+    def decode(self, data: bytes | None, t_ns: int) -> Iterable[object]:
+        """Items decoded from `data` (None: the read timed out; a decoder that hands off on
+        silence does so here)."""
+        return ()
+
+    def publish(self, item: object, t_ns: int) -> int:
+        """Write one decoded item to the vehicle state and the thread's log; returns how many
+        cycles it counts for the watchdog (1 for a sample, 0 for side information)."""
+        return 0
+
+    def configure(self) -> None:
+        """Read this driver's parameters (at start and after a change)."""
+        if self.raw_format is not None:
+            self.log_raw = bool(self.param("LOG_RAW"))
+
+    # ---------------------------------------------------------------- the read path
+    def prologue(self) -> bool:
+        self.configure()
+        return True
+
+    def on_params_changed(self) -> None:
+        self.configure()
+
+    def step(self) -> int:
+        """Read what the device sent, log it raw, decode it, publish every item."""
+        data = self.read_chunk()
+        t_ns = self.ctx.clock.realtime_ns()
+        tlog = self.tlog
+        if data and tlog is not None and self.log_raw and self.raw_format is not None:
+            tlog.log_array(self.raw_format, data, t_ns=t_ns)
+        count = 0
+        sink = self.item_sink
+        for item in self.decode(data, t_ns):
+            if sink is not None:
+                sink(item)
+            count += self.publish(item, t_ns)
+        return count
 
     # ---------------------------------------------------------------- port handling
 
@@ -80,11 +140,8 @@ class SerialDevice(ManagedThread):
         replay`): a driver that pairs answers with its own requests relaxes that here."""
     def _open(self) -> bool:
         try:
-            port = serial.serial_for_url(
-                self.url, baudrate=self.baudrate,
-                timeout=self.ctx.clock.to_host_s(self.read_timeout_s),
-                write_timeout=0.5, exclusive=None,
-            )
+            port = open_serial_port(self.url, self.baudrate,
+                                    read_timeout_s=self.ctx.clock.to_host_s(self.read_timeout_s))
         except (serial.SerialException, OSError, ValueError) as exc:
             self.port_counters.open_failures += 1
             if self.port_counters.open_failures in (1, 10, 100) or self.port_counters.open_failures % 1000 == 0:

@@ -21,6 +21,8 @@ from companion.drivers.servo_protocol import (
     encode_command,
     surfaces_to_channels,
 )
+from companion.tasks import VEHICLE_TASKS
+from companion.watchdog.task import Task
 
 FMT_EXCHANGE = 1
 CONTROL_FRESH_S = 0.1  # older control output is not sent: the board falls back to the pilot
@@ -35,10 +37,11 @@ def surfaces_to_us(out: ControlOutput) -> tuple[int, ...]:
 
 
 class ServoDriver(SerialDevice):
-    max_catch_up = 3
-    def __init__(self, url: str, baudrate: int = 115200, *, name: str = "servo", thread_id: int = 3) -> None:
-        super().__init__(name, thread_id=thread_id, url=url, baudrate=baudrate, period_ms=20.0,
-                         budget_ms=15.0, watchdog_ms=500, message_ms=1000, read_timeout_s=0.005)
+    """Writes the command, then reads the pilot's answer: a timer thread, not a paced reader,
+    so it overrides `step` and publishes each answer through `publish`."""
+
+    def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["servo"]) -> None:
+        super().__init__(task, url=url, baudrate=baudrate, read_timeout_s=0.005)
         self.decoder = PilotDecoder()
         self.seq = 0
         self.answer_timeout_s = 0.015
@@ -46,8 +49,9 @@ class ServoDriver(SerialDevice):
         self.match_seq = True  # replaying a capture: accept answers to commands never sent
         self._last_cmd: ServoCommand | None = None  # the previous command, while unanswered
 
-    def declare_params(self) -> list[ParamSpec]:
-        return [int_param(f"{self.param_prefix}_ANS_MS", 15, 1, 19, "ms",
+    @classmethod
+    def declare_params(cls, prefix: str) -> list[ParamSpec]:
+        return super().declare_params(prefix) + [int_param(f"{prefix}_ANS_MS", 15, 1, 19, "ms",
                           "How long to wait for the board's pilot frame after each command.")]
 
     def define_logs(self, tlog: Any) -> None:
@@ -55,16 +59,14 @@ class ServoDriver(SerialDevice):
                 + ["seq", "auto_requested", "auto_engaged", "failsafe", "avionics_batt",
                    "servo_batt"])
         tlog.define(FMT_EXCHANGE, ",".join(["%hu"] * 16) + ",%hhu,%hhu,%hhu,%hhu,%hhu,%hhu", cols)
+        super().define_logs(tlog)
 
-    def prologue(self) -> bool:
+    def configure(self) -> None:
+        super().configure()
         self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
-        return True
 
     def prepare_for_replay(self) -> None:
         self.match_seq = False  # a capture answers commands this driver never sent
-
-    def on_params_changed(self) -> None:
-        self.answer_timeout_s = int(self.param("ANS_MS")) / 1000.0
 
     def on_port_opened(self) -> None:
         self.decoder.reset()
@@ -102,16 +104,18 @@ class ServoDriver(SerialDevice):
                 if current or late:
                     sent = cmd if current else self._last_cmd
                     assert sent is not None
-                    self._publish(frame, sent)
-                    answered += 1
+                    answered += self.publish((frame, sent), clock.realtime_ns())
                     got_current = got_current or current
         self._last_cmd = cmd if not got_current else None
         if not got_current:
             self.missed_answers += 1
         return answered
 
-    def _publish(self, answer: PilotFrame, cmd: ServoCommand) -> None:
-        t_ns = self.ctx.clock.realtime_ns()
+    def publish(self, item: object, t_ns: int) -> int:
+        """One exchange: the pilot's answer with the command it answers."""
+        assert isinstance(item, tuple)
+        answer: PilotFrame = item[0]
+        cmd: ServoCommand = item[1]
         self.ctx.state.servo.write(ServoState(
             t_ns, cmd.seq, answer.channels_us, cmd.channels_us, cmd.auto_requested,
             answer.auto_engaged, answer.failsafe, answer.avionics_batt_raw, answer.servo_batt_raw))
@@ -119,6 +123,7 @@ class ServoDriver(SerialDevice):
             self.tlog.log(FMT_EXCHANGE, *answer.channels_us, *cmd.channels_us, cmd.seq,
                           int(cmd.auto_requested), int(answer.auto_engaged), int(answer.failsafe),
                           answer.avionics_batt_raw, answer.servo_batt_raw, t_ns=t_ns)
+        return 1
 
     def counters(self) -> dict[str, int]:
         out = super().counters()

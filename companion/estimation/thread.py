@@ -23,7 +23,8 @@ from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import EstimatorState
 from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL, Eskf
 from companion.estimation.fusion import EstimatorCore
-from companion.watchdog.thread import ManagedThread
+from companion.tasks import VEHICLE_TASKS
+from companion.watchdog.thread import ManagedThread, Task
 
 log = logging.getLogger(__name__)
 
@@ -39,16 +40,15 @@ GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_
 
 
 class EstimatorThread(ManagedThread):
-    def __init__(self, *, name: str = "estimator", thread_id: int = 4) -> None:
-        super().__init__(name, thread_id=thread_id, watchdog_ms=1000, message_ms=1000,
-                         budget_ms=3.0, param_prefix="EST")
+    def __init__(self, *, task: Task = VEHICLE_TASKS["estimator"]) -> None:
+        super().__init__(task)
         self.core: EstimatorCore | None = None
         self._gps_seen = 0
         self._hzn_seen = 0
         self.faults_reported = 0
 
-    def declare_params(self) -> list[ParamSpec]:
-        p = self.param_prefix
+    @classmethod
+    def declare_params(cls, p: str) -> list[ParamSpec]:
         return [
             float_param(f"{p}_INIT_S", 1.0, 0.1, 60.0, "s",
                         "Initial phase: IMU averaging time that levels the attitude and takes "
@@ -81,7 +81,7 @@ class EstimatorThread(ManagedThread):
     def _params(self) -> dict[str, float]:
         prefix = self.param_prefix + "_"
         return {spec.name.removeprefix(prefix): float(self.ctx.params.get(spec.name))
-                for spec in self.declare_params()}
+                for spec in self.declare_params(self.param_prefix)}
 
     def on_params_changed(self) -> None:
         if self.core is not None:

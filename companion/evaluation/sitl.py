@@ -63,6 +63,7 @@ from companion.estimation.thread import EstimatorThread
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
 from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
+from companion.tasks import VEHICLE_TASKS
 
 log = logging.getLogger(__name__)
 
@@ -331,13 +332,12 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
 def estimator_param_defaults() -> dict[str, float]:
     """The estimator thread's parameter defaults, by suffix (``GPS_LAG``, ``GYR_NSD``...).
 
-    Read from :meth:`EstimatorThread.declare_params`, so the evaluation follows the thread's
-    defaults instead of copying them.
+    Read from the estimator's class metadata (no thread is built), so the evaluation follows
+    the thread's defaults instead of copying them.
     """
-    thread = EstimatorThread()
-    prefix = thread.param_prefix + "_"
-    return {spec.name.removeprefix(prefix): float(spec.default)
-            for spec in thread.declare_params()}
+    prefix = VEHICLE_TASKS["estimator"].param_prefix
+    return {spec.name.removeprefix(prefix + "_"): float(spec.default)
+            for spec in EstimatorThread.declare_params(prefix)}
 
 
 class EskfAsThread(EstimatorCore):

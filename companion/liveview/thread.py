@@ -13,6 +13,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from companion.liveview import entities as E
 from companion.liveview.sink import Recording, ViewerError, open_recording
 from companion.liveview.tail import LogTail
 from companion.report.analysis import quat_xyzw
-from companion.watchdog import ManagedThread, RestartType, RuntimeContext, ThreadManager
+from companion.watchdog import ManagedThread, RuntimeContext, Task, ThreadManager, ThreadStatus
 
 __all__ = ["LiveView", "LiveViewThread"]
 
@@ -98,24 +99,28 @@ class _Columns:
             self.values[path].clear()
 
 
+LIVEVIEW_TASK = Task("liveview", period_ms=1000.0 / RATE_HZ, paced_by="its timer (host rate)",
+                     watchdog_ms=2000, param_prefix="VIEW",
+                     implementation="companion.liveview.thread:LiveViewThread")
+"""The live view's row; its period is scaled with the simulation speed when it is built."""
+
+
 class LiveViewThread(ManagedThread):
     """Samples `ctx.state` into a rerun recording (see the module docstring)."""
 
-    restart = RestartType.TRANSIENT
-
     def __init__(self, *, spawn: bool = False, save_path: Path | None = None, serve: bool = False,
-                 clock_scale: float = 1.0, rate_hz: float = RATE_HZ, name: str = "liveview",
-                 thread_id: int = 0) -> None:
+                 clock_scale: float = 1.0, rate_hz: float = RATE_HZ,
+                 task: Task = LIVEVIEW_TASK) -> None:
         period_ms = 1000.0 / rate_hz * clock_scale  # clock time, so the host rate stays rate_hz
-        super().__init__(name, thread_id=thread_id, period_ms=period_ms, budget_ms=period_ms,
-                         watchdog_ms=max(2000, int(20 * period_ms)), message_ms=1000,
-                         param_prefix="VIEW")
+        super().__init__(task.replace(period_ms=period_ms, budget_ms=period_ms,
+                                      watchdog_ms=max(task.watchdog_ms, int(20 * period_ms))))
         self.spawn = spawn
         self.save_path = save_path
         self.serve = serve
         self.recording: Recording | None = None
         self.frames: MessageQueue[tuple[int, np.ndarray, Any]] = MessageQueue(FRAME_QUEUE, drop_oldest=True)
         self.events: Any = None  # MessageQueue[WatchdogEvent] from the manager
+        self.thread_status: Callable[[], list[ThreadStatus]] | None = None  # the manager's
         self.samples: dict[str, int] = {}  # rows sent per entity; read it with sample_counts()
         self._samples_lock = threading.Lock()
         self.logging_ns = 0  # thread CPU time spent in step(), for the overhead figure
@@ -136,8 +141,6 @@ class LiveViewThread(ManagedThread):
             if self.recording.web_url:
                 log.warning("rerun web viewer at %s (gRPC %s)", self.recording.web_url,
                             self.recording.url)
-        if self._manager is not None and self.events is None:
-            self.events = self._manager.subscribe_events(256)
         if self._truth is None and self.ctx.flight_dir is not None:
             self._truth = LogTail(self.ctx.flight_dir / "truth.bin", 1)
 
@@ -319,10 +322,10 @@ class LiveViewThread(ManagedThread):
             if poly.changed and len(poly.points) >= 2:
                 poly.changed = False
                 self._log(path, rr.LineStrips3D([poly.points]), now)
-        manager = self._manager
-        if manager is None:
+        source = self.thread_status
+        if source is None:
             return
-        for s in manager.thread_status():
+        for s in source():
             if s.name == self.name:
                 continue
             self._scalars(E.thread_path(s.name, "rate_hz"), now, s.measured_rate_hz)
@@ -355,6 +358,7 @@ class LiveView:
                                      clock_scale=ctx.clock.scale)
         # Subscribe now, so the STARTED events of threads set up before the view are seen.
         self.thread.events = manager.subscribe_events(256)
+        self.thread.thread_status = manager.thread_status
         manager.add(self.thread)
 
     def submit_frame(self, t_ns: int, image: np.ndarray, horizon: Any = None) -> bool:
@@ -371,3 +375,7 @@ class LiveView:
 
     def close(self) -> None:
         self.thread.close()
+
+    def stats(self) -> list[dict[str, Any]]:
+        """The live view sends nothing to a ground station: no message counts."""
+        return []

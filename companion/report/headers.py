@@ -24,16 +24,21 @@ from companion.logs.records import (
     encode_comment,
     encode_definition,
 )
+from companion.tasks import VEHICLE_TASKS
 
 __all__ = ["PRODUCERS", "definition_records", "known_header"]
 
 log = logging.getLogger(__name__)
 
 #: log name -> (module, class, constructor positional arguments)
+def _producer(name: str, implementation: str) -> tuple[str, str, tuple[Any, ...]]:
+    module, _, cls_name = implementation.partition(":")
+    return module, cls_name, ("loop://",) if name in DEVICES else ()
+
+
 PRODUCERS: dict[str, tuple[str, str, tuple[Any, ...]]] = {
-    **{d.name: (d.module, d.driver, ("loop://",)) for d in DEVICES.values()},
-    "control": ("companion.control", "ControlThread", ()),
-    "estimator": ("companion.estimation.thread", "EstimatorThread", ()),
+    # every row of the vehicle's task table; a device's driver is built on a loopback port
+    row.name: _producer(row.name, row.implementation) for row in VEHICLE_TASKS.values()
 }
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from companion.watchdog.events import EventKind, WatchdogEvent
 from companion.watchdog.manager import ManagerCommand, ManagerStatus, ThreadManager
+from companion.watchdog.task import Task
 from companion.watchdog.thread import (
     ManagedThread,
     RestartType,
@@ -19,6 +20,7 @@ __all__ = [
     "ManagerStatus",
     "RestartType",
     "RuntimeContext",
+    "Task",
     "ThreadInterrupted",
     "ThreadManager",
     "ThreadStatus",

@@ -31,7 +31,6 @@ from companion.watchdog.thread import (
     ManagedThread,
     RestartType,
     RuntimeContext,
-    ThreadInterrupted,
     ThreadStatus,
 )
 
@@ -117,9 +116,8 @@ class ThreadManager:
 
     def _adopt(self, t: ManagedThread) -> None:
         self._assign_id(t)
-        t.ctx = self.ctx
-        t._manager = self
-        self.ctx.params.declare_all(t.base_params() + t.declare_params())
+        t.attach(self.ctx, on_exit=self.wake)
+        self.ctx.params.declare_all(t.param_specs())
         self._restart_times.setdefault(t.name, deque())
 
     def _assign_id(self, t: ManagedThread) -> None:
@@ -240,7 +238,7 @@ class ThreadManager:
     def shutdown(self) -> None:
         """Stop every thread in reverse order and release its resources."""
         for t in reversed(self.threads):
-            if t._worker is not None or t.initialised:
+            if t.has_worker or t.initialised:
                 self._stop_thread(t, why="shutdown")
                 self._emit(EventKind.STOPPED, t.name, "shutdown")
         self._param_unsub()
@@ -265,12 +263,12 @@ class ThreadManager:
         # Only the owner (the thread whose prefix the name carries) re-reads its parameters.
         for t in self.threads:
             if name.startswith(t.param_prefix + "_"):
-                t._mark_params_dirty(name, value)
+                t.notify_params_changed(name)
         self._wake.set()
 
     def _start_thread(self, t: ManagedThread, *, first: bool = False) -> bool:
         try:
-            t._ensure_log()
+            t.open_log()
             t.setup()
             t.initialised = True
         except Exception as exc:
@@ -287,7 +285,7 @@ class ThreadManager:
         self._seen_cycles[t.name] = t.cycles
         self._seen_beats[t.name] = t.heartbeats
         self._silent[t.name] = False
-        t._start_worker()
+        t.start_worker()
         self._schedule_check(t, self.ctx.clock.monotonic_ns())
         if first:
             self._emit(EventKind.STARTED, t.name)
@@ -305,32 +303,27 @@ class ThreadManager:
         timeout_ms = (t.shutdown_timeout_ms if t.shutdown_timeout_ms is not None
                       else int(self.ctx.params.get("MGR_SHUTDOWN_MS")))
         host_timeout_s = timeout_ms / 1000
-        worker = t._worker
         outcome = "stopped"
-        t._stop.set()
+        t.request_stop()
         try:
             t.interrupt_io()
         except Exception:
             log.exception("thread %s: interrupt_io failed", t.name)
-        if worker is not None and worker is not threading.current_thread():
-            worker.join(host_timeout_s)
-            if worker.is_alive():
-                # A pure-Python loop that ignores its stop event: interrupt it.
-                t._raise_async(ThreadInterrupted)
-                worker.join(host_timeout_s)
-                outcome = "interrupted"
-                if worker.is_alive():
-                    # Stuck inside C: nothing can stop it. Leave it behind (daemon) and replace.
-                    outcome = "abandoned"
-                    t.abandoned += 1
-                    self._abandoned_workers.append(worker)
-                    self._emit(EventKind.ABANDONED, t.name, why)
-                else:
-                    t.interrupted += 1
-                    self._emit(EventKind.INTERRUPTED, t.name, why)
-        t._worker = None
-        t.running = False
-        t.in_periodic = False
+        if not t.join_worker(host_timeout_s):
+            # A pure-Python loop that ignores its stop event: interrupt it.
+            t.interrupt_worker()
+            outcome = "interrupted"
+            if not t.join_worker(host_timeout_s):
+                # Stuck inside C: nothing can stop it. Leave it behind (daemon) and replace.
+                outcome = "abandoned"
+                t.abandoned += 1
+                self._emit(EventKind.ABANDONED, t.name, why)
+            else:
+                t.interrupted += 1
+                self._emit(EventKind.INTERRUPTED, t.name, why)
+        worker = t.release_worker()
+        if outcome == "abandoned" and worker is not None:
+            self._abandoned_workers.append(worker)
         try:
             t.cleanup()
         except Exception:
@@ -372,19 +365,19 @@ class ThreadManager:
                 continue
             enabled = t.enabled
             if not enabled:
-                if t._worker is not None or t.initialised:
+                if t.has_worker or t.initialised:
                     self._stop_thread(t, why="disabled")
                     self._emit(EventKind.DISABLED, t.name)
                 continue
-            if t._worker is None:
+            if not t.has_worker:
                 if t.initialised is False and self._next_check_ns.get(t.name, 0) <= now:
                     # never started, re-enabled, or a setup that failed: (re)try
                     was_enabled_event = t.restarts == 0 and t.cycles == 0
                     if self._start_thread(t) and not was_enabled_event:
                         self._emit(EventKind.ENABLED, t.name)
                 continue
-            if not t._worker.is_alive():
-                kind = t._exit_kind
+            if not t.worker_alive:
+                kind = t.outcome
                 if kind == "crash":
                     t.crashes += 1
                     self._emit(EventKind.CRASH, t.name, t.last_error[:80])

@@ -14,34 +14,27 @@ silent device.
 from __future__ import annotations
 
 import ctypes
-import enum
 import logging
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from companion.core.clock import Clock
 from companion.core.osthread import set_native_name
-from companion.core.params import ParamRegistry, ParamSpec, int_param
+from companion.core.params import ParamRegistry, ParamSpec
 from companion.core.state import VehicleState
-
-if TYPE_CHECKING:
-    from companion.watchdog.manager import ThreadManager
+from companion.watchdog.task import RestartType, Task
 
 log = logging.getLogger(__name__)
 
 PERIOD_RING = 4096  # cycle-period samples kept per thread for jitter statistics
 
-
-class RestartType(enum.Enum):
-    """OTP restart types: which terminations of a child lead to a restart."""
-
-    PERMANENT = "permanent"  # always restarted, even after a normal exit
-    TRANSIENT = "transient"  # restarted after a crash or a stall, not after a normal exit
-    TEMPORARY = "temporary"  # never restarted
+__all__ = ["ManagedThread", "RestartType", "RuntimeContext", "Task", "ThreadInterrupted",
+           "ThreadStatus"]
 
 
 class ThreadInterrupted(BaseException):
@@ -99,48 +92,41 @@ class ThreadStatus:
 class ManagedThread:
     """Base class of every supervised thread; subclasses override the hooks below.
 
+    The numbers (id, period, budget, watchdog and message periods, restart type, shutdown
+    timeout, parameter prefix) come from a `Task` row; the class supplies the behaviour.
     `period_ms` set: timer-driven on absolute monotonic deadlines (no drift, missed deadlines
     counted and skipped rather than bunched). `period_ms` None: paced by `step` itself (a
     blocking device read with a timeout, or a wait on a data slot).
+
+    The supervisor's handle is small and explicit: `attach`, `open_log`, `start_worker`,
+    `request_stop`, `interrupt_io`, `interrupt_worker`, `join_worker`, `worker_alive`,
+    `outcome`, `release_worker` and `notify_params_changed`. Nothing else of a thread's
+    insides is the manager's business.
     """
 
-    #: Restart type (OTP). Transient by default: a thread that decides to terminate stays down.
-    restart: RestartType = RestartType.TRANSIENT
-    #: Timer threads: how many whole lost periods are caught up (run back to back) before
-    #: lost cycles are dropped instead. 0 keeps the phase at any cost; an exchange with a
-    #: device (the servo board) would rather catch up a short hiccup than lose commands.
-    max_catch_up: int = 0
-
-    def __init__(
-        self,
-        name: str,
-        *,
-        thread_id: int,
-        period_ms: float | None = None,
-        budget_ms: float | None = None,
-        watchdog_ms: int = 500,
-        message_ms: int = 1000,
-        shutdown_timeout_ms: int | None = None,
-        param_prefix: str | None = None,
-    ) -> None:
-        self.name = name
-        self.thread_id = thread_id
-        self.period_ms = period_ms
-        self.budget_ms = budget_ms if budget_ms is not None else (period_ms or 10.0)
-        self.shutdown_timeout_ms = shutdown_timeout_ms
-        """How long this thread may take to stop (host ms); None: the manager's MGR_SHUTDOWN_MS.
-        A thread whose cleanup legitimately takes longer (flushing a device) says so here."""
-        self.param_prefix = (param_prefix or name).upper()[:6]
-        self._default_watchdog_ms = watchdog_ms
-        self._default_message_ms = message_ms
+    def __init__(self, task: Task | str, **fields: Any) -> None:
+        """`task` is the thread's row; a name plus keyword fields builds a row on the spot
+        (custom threads and tests), and keyword fields given with a row override it."""
+        if isinstance(task, str):
+            task = Task(task, **fields)
+        elif fields:
+            task = task.replace(**fields)
+        self.task = task
+        self.name = task.name
+        self.thread_id = task.thread_id  # the manager may assign one when the row says 0
+        self.period_ms = task.period_ms
+        self.budget_ms = task.effective_budget_ms
+        self.shutdown_timeout_ms = task.shutdown_timeout_ms
+        self.param_prefix = task.param_prefix
+        self.restart = task.restart
+        self.max_catch_up = task.max_catch_up
         self.ctx: RuntimeContext = RuntimeContext()
-        self.tlog: Any = None  # the thread's ThreadLog, if the subclass opens one in setup()
-        self._manager: ThreadManager | None = None
+        self.tlog: Any = None  # the thread's ThreadLog, if the subclass declares formats
+        self._on_exit: Callable[[], None] | None = None
         # incarnation state, replaced at every (re)start
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._params_dirty = threading.Event()
-        self._unsubscribe: Any = None
         # status (written by the worker, read racily by the manager: plain attributes)
         self.initialised = False
         self.running = False
@@ -166,11 +152,13 @@ class ManagedThread:
         self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (host ns, cycles) samples
         self._rate_n = 0
         self.work_t0_ns = 0  # set by device-paced steps when data arrived (excludes the wait)
-        self._exit_kind: str = ""  # "", "normal", "crash"
+        self._exit_kind: str = ""  # "", "normal", "crash", "interrupted"
 
     # ---------------------------------------------------------------- hooks for implementers
-    def declare_params(self) -> list[ParamSpec]:
-        """Extra parameters this thread owns (the base adds WDG_MS, MSG_MS, ENABLE)."""
+    @classmethod
+    def declare_params(cls, prefix: str) -> list[ParamSpec]:
+        """Extra parameters this thread class owns, named `<prefix>_...` (its row adds WDG_MS,
+        MSG_MS and ENABLE). A class method: the metadata is read without building a thread."""
         return []
 
     def define_logs(self, tlog: Any) -> None:
@@ -204,17 +192,9 @@ class ManagedThread:
         """Worker thread, between cycles, after any parameter changed."""
 
     # ---------------------------------------------------------------- parameters
-    def base_params(self) -> list[ParamSpec]:
-        p = self.param_prefix
-        return [
-            int_param(f"{p}_WDG_MS", self._default_watchdog_ms, 10, 600_000, "ms",
-                      f"Watchdog period of the {self.name} thread: a stall is declared when no "
-                      "periodic cycle completes within it."),
-            int_param(f"{p}_MSG_MS", self._default_message_ms, 10, 3_600_000, "ms",
-                      f"Period of the {self.name} thread's data messages to the ground."),
-            int_param(f"{p}_ENABLE", 1, 0, 1, "",
-                      f"1 runs the {self.name} thread, 0 stops it cleanly."),
-        ]
+    def param_specs(self) -> list[ParamSpec]:
+        """Every parameter of this thread: its row's and its class's."""
+        return self.task.base_params() + type(self).declare_params(self.param_prefix)
 
     def param(self, suffix: str) -> Any:
         return self.ctx.params.get(f"{self.param_prefix}_{suffix}")
@@ -290,6 +270,10 @@ class ManagedThread:
             return 0.0
         return (c_new - c_old) / ((t_new - t_old) / 1e9) / self.ctx.clock.scale
 
+    def counters(self) -> dict[str, int]:
+        """Thread-specific counters for the flight summary (a driver's bytes and errors)."""
+        return {}
+
     def reset_statistics(self) -> None:
         self._step_total_ns = 0
         self._step_count = 0
@@ -299,8 +283,14 @@ class ManagedThread:
         self.missed_deadlines = 0
         self.overruns = 0
 
-    # ---------------------------------------------------------------- manager side
-    def _ensure_log(self) -> None:
+    # ---------------------------------------------------------------- the supervisor's handle
+    def attach(self, ctx: RuntimeContext, on_exit: Callable[[], None] | None = None) -> None:
+        """Join a runtime: its context, and whom to tell when a worker ends (the manager's
+        wake-up, so an exit is handled at once rather than at the next watchdog tick)."""
+        self.ctx = ctx
+        self._on_exit = on_exit
+
+    def open_log(self) -> None:
         """Open this thread's log once per run; every (re)start then adds a Begin Data."""
         logs = self.ctx.logs
         has_formats = type(self).define_logs is not ManagedThread.define_logs
@@ -309,7 +299,8 @@ class ManagedThread:
             self.tlog = logs.open(self.name, text=text)
             self.define_logs(self.tlog)
 
-    def _start_worker(self) -> None:
+    def start_worker(self) -> None:
+        """Start a new incarnation: a fresh stop event, so an abandoned worker stays stopped."""
         self._stop = threading.Event()
         self._params_dirty.clear()
         self._exit_kind = ""
@@ -320,17 +311,60 @@ class ManagedThread:
         )
         self._worker.start()
 
-    def _mark_params_dirty(self, name: str, value: object) -> None:
-        self._params_dirty.set()
+    def request_stop(self) -> None:
+        """Ask the worker to leave its loop at its next check of the stop event."""
+        self._stop.set()
 
-    def _raise_async(self, exc: type[BaseException]) -> bool:
+    @property
+    def has_worker(self) -> bool:
+        return self._worker is not None
+
+    @property
+    def worker_alive(self) -> bool:
+        worker = self._worker
+        return worker is not None and worker.is_alive()
+
+    @property
+    def outcome(self) -> str:
+        """How the last worker ended: "" (running or never ran), "normal", "crash",
+        "interrupted"."""
+        return self._exit_kind
+
+    @property
+    def native_id(self) -> int | None:
+        """The OS thread id of the current worker (per-thread CPU figures)."""
+        worker = self._worker
+        return None if worker is None else worker.native_id
+
+    def join_worker(self, host_timeout_s: float) -> bool:
+        """Wait (host time) for the worker to end; True when it has (or there is none)."""
+        worker = self._worker
+        if worker is None or worker is threading.current_thread():
+            return True
+        worker.join(host_timeout_s)
+        return not worker.is_alive()
+
+    def interrupt_worker(self) -> bool:
+        """Raise ThreadInterrupted inside a pure-Python loop that ignores its stop event;
+        False when there is no live worker to raise it in."""
         worker = self._worker
         if worker is None or worker.ident is None or not worker.is_alive():
             return False
         n = ctypes.pythonapi.PyThreadState_SetAsyncExc(
-            ctypes.c_ulong(worker.ident), ctypes.py_object(exc)
+            ctypes.c_ulong(worker.ident), ctypes.py_object(ThreadInterrupted)
         )
         return n == 1
+
+    def release_worker(self) -> threading.Thread | None:
+        """Forget the current worker (stopped, or abandoned inside C) and return it."""
+        worker, self._worker = self._worker, None
+        self.running = False
+        self.in_periodic = False
+        return worker
+
+    def notify_params_changed(self, name: str) -> None:
+        """A parameter of this thread changed (any thread): re-read between two cycles."""
+        self._params_dirty.set()
 
     # ---------------------------------------------------------------- worker side
     def _run(self, stop: threading.Event) -> None:
@@ -393,9 +427,9 @@ class ManagedThread:
                     log.exception("thread %s: could not write End Data", self.name)
             self.in_periodic = False
             self.running = False
-            manager = self._manager
-            if manager is not None:
-                manager.wake()
+            on_exit = self._on_exit
+            if on_exit is not None:
+                on_exit()
 
     def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int = 1) -> None:
         if self._last_cycle_start_ns:

@@ -1,0 +1,117 @@
+"""A task: one row of a task table, everything the supervisor needs to know about a thread.
+
+ArduPilot lists its scheduler's tasks in one table (`scheduler_tasks[]`) so that rates and budgets
+are read in one place instead of inside each function. Here a row holds the same facts for a
+managed thread: its name and id, what paces it, its time budget, its watchdog and message periods,
+its OTP restart type, how long it may take to stop, and the prefix of its parameters. A thread
+class supplies behaviour; the row supplies the numbers. The vehicle's rows are in
+`companion.tasks`; a bridge declares its own rows next to its threads and adds them through
+`ThreadManager.add`, which hands out the ids.
+
+The row also names the class that implements it, so its parameters' metadata (descriptions,
+units, ranges, defaults) can be read without building a thread, a manager or a runtime.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import importlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from companion.core.params import ParamSpec, int_param
+
+if TYPE_CHECKING:
+    from companion.watchdog.thread import ManagedThread
+
+__all__ = ["RestartType", "Task"]
+
+PREFIX_MAX = 6
+"""Parameter ids are at most 16 characters (MAVLink); a 6-letter prefix leaves 9 for the rest."""
+
+
+class RestartType(enum.Enum):
+    """OTP restart types: which terminations of a child lead to a restart."""
+
+    PERMANENT = "permanent"  # always restarted, even after a normal exit
+    TRANSIENT = "transient"  # restarted after a crash or a stall, not after a normal exit
+    TEMPORARY = "temporary"  # never restarted
+
+
+@dataclass(frozen=True)
+class Task:
+    """One supervised thread's row. Times are in the flight's clock unless a field says host."""
+
+    name: str
+    thread_id: int = 0
+    """0: the manager hands out the lowest free id from its first assignable one."""
+    period_ms: float | None = None
+    """Timer-driven at this period on absolute deadlines; None: paced by `step` itself."""
+    paced_by: str = ""
+    """What paces a thread without a period (a device's frames, a data slot), for people."""
+    budget_ms: float | None = None
+    """A step longer than this is an overrun; None: the period, or 10 ms without one."""
+    watchdog_ms: int = 500
+    """Default of `<PREFIX>_WDG_MS`: a stall is declared when no cycle completes within it."""
+    message_ms: int = 1000
+    """Default of `<PREFIX>_MSG_MS`: the period of the thread's data messages to the ground."""
+    restart: RestartType = RestartType.TRANSIENT
+    max_catch_up: int = 0
+    """Timer threads: whole lost periods run back to back before lost cycles are dropped."""
+    shutdown_timeout_ms: int | None = None
+    """Host ms the thread may take to stop; None: the manager's MGR_SHUTDOWN_MS."""
+    param_prefix: str = ""
+    """Prefix of the thread's parameters; empty: the name, upper case, cut to 6 letters."""
+    implementation: str = ""
+    """``module:Class`` of the thread, so its parameters can be listed without building it."""
+
+    def __post_init__(self) -> None:
+        if not self.name:
+            raise ValueError("a task needs a name")
+        prefix = (self.param_prefix or self.name).upper()[:PREFIX_MAX]
+        object.__setattr__(self, "param_prefix", prefix)
+        if self.period_ms is not None and self.period_ms <= 0:
+            raise ValueError(f"task {self.name}: period_ms must be positive, not {self.period_ms}")
+
+    @property
+    def effective_budget_ms(self) -> float:
+        if self.budget_ms is not None:
+            return self.budget_ms
+        return self.period_ms or 10.0
+
+    def replace(self, **changes: Any) -> Task:
+        """This row with some fields changed (a second instance of a thread class, a test)."""
+        if "name" in changes and "param_prefix" not in changes and not changes.get("param_prefix"):
+            # a renamed row derives its prefix from the new name, unless one is given
+            changes["param_prefix"] = ""
+        return dataclasses.replace(self, **changes)
+
+    def base_params(self) -> list[ParamSpec]:
+        """The parameters every managed thread has: watchdog and message periods, enable."""
+        p = self.param_prefix
+        return [
+            int_param(f"{p}_WDG_MS", self.watchdog_ms, 10, 600_000, "ms",
+                      f"Watchdog period of the {self.name} thread: a stall is declared when no "
+                      "periodic cycle completes within it."),
+            int_param(f"{p}_MSG_MS", self.message_ms, 10, 3_600_000, "ms",
+                      f"Period of the {self.name} thread's data messages to the ground."),
+            int_param(f"{p}_ENABLE", 1, 0, 1, "",
+                      f"1 runs the {self.name} thread, 0 stops it cleanly."),
+        ]
+
+    def thread_class(self) -> type[ManagedThread]:
+        """The implementing class, imported on demand (the table itself imports nothing)."""
+        if not self.implementation:
+            raise LookupError(f"task {self.name} names no implementing class")
+        module, _, attr = self.implementation.partition(":")
+        try:
+            cls: type[ManagedThread] = getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError) as exc:
+            raise LookupError(f"task {self.name}: cannot load {self.implementation}: {exc}") from exc
+        return cls
+
+    def param_specs(self) -> list[ParamSpec]:
+        """Every parameter this task's thread declares, read from the class, not an instance."""
+        own = self.thread_class().declare_params(self.param_prefix) if self.implementation else []
+        return self.base_params() + own
