@@ -359,3 +359,38 @@ def test_a_parameter_change_notifies_only_its_owner() -> None:
         cycles = b.cycles
         assert wait_for(lambda: b.cycles > cycles + 5, 5.0)  # beta ran on, and was not told
         assert b.notified == 0
+
+
+class _SlowStart(ManagedThread):
+    """Its prologue ends just before the first watchdog check, and its first step is slow:
+    the estimator's start (1 s of IMU averaging against a 1000 ms watchdog) in miniature."""
+
+    def __init__(self, name: str, thread_id: int, started: float) -> None:
+        super().__init__(name, thread_id=thread_id, watchdog_ms=100)
+        self.started = started
+        self.first = True
+
+    def prologue(self) -> bool:
+        # end ~5 ms before the manager's first check (100 ms after its start)
+        delay = self.started + 0.095 - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        return True
+
+    def step(self) -> bool:
+        if self.first:
+            self.first = False
+            self.stop_event.wait(0.06)  # the first step: longer than the 5 ms left of the window
+        else:
+            self.stop_event.wait(0.005)
+        return True
+
+
+def test_the_first_window_starts_with_the_periodic_section_not_the_thread() -> None:
+    started = time.monotonic()
+    threads = [_SlowStart(f"slow{k}", k + 1, started) for k in range(6)]
+    mgr = make_manager(*threads)
+    with RunInBackground(mgr):
+        assert wait_for(lambda: all(t.cycles > 40 for t in threads), 5.0)
+    assert [t.stalls for t in threads] == [0] * 6
+    assert [t.restarts for t in threads] == [0] * 6

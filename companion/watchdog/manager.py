@@ -104,6 +104,7 @@ class ThreadManager:
         self._seen_cycles: dict[str, int] = {}
         self._seen_beats: dict[str, int] = {}
         self._silent: dict[str, bool] = {}
+        self._armed: dict[str, bool] = {}  # the periodic section's first window has begun
         self._restart_times: dict[str, deque[float]] = {}
         self._abandoned_workers: list[threading.Thread] = []
         self._started = False
@@ -285,6 +286,7 @@ class ThreadManager:
         self._seen_cycles[t.name] = t.cycles
         self._seen_beats[t.name] = t.heartbeats
         self._silent[t.name] = False
+        self._armed[t.name] = False
         t.start_worker()
         self._schedule_check(t, self.ctx.clock.monotonic_ns())
         if first:
@@ -396,6 +398,15 @@ class ThreadManager:
             if not t.in_periodic:
                 continue  # the aperiodic prologue is not under the watchdog
             cycles, beats = t.cycles, t.heartbeats
+            if not self._armed.get(t.name):
+                # The first window starts at the first check that finds the thread periodic,
+                # not at its start: a prologue that ends just before a check (the estimator's
+                # 1 s of IMU averaging against its 1000 ms watchdog) would otherwise be judged
+                # on a window in which its first step had no time to finish.
+                self._armed[t.name] = True
+                self._seen_cycles[t.name] = cycles
+                self._seen_beats[t.name] = beats
+                continue
             if cycles != self._seen_cycles.get(t.name):
                 t.alive_at_last_check = True
                 if self._silent.get(t.name):
