@@ -247,11 +247,16 @@ class Link:
         what = msg.get_type()
         if what in ("COMMAND_LONG", "COMMAND_INT"):
             what += f" {getattr(msg, 'command', '?')}"
-        log.warning("link %d: refused %s from %d/%d: %s", self.index, what, msg.get_srcSystem(),
-                    msg.get_srcComponent(), why)
+        # Reported at most once per REFUSAL_REPORT_S, in the log as on the ground: a flood of
+        # refused frames must not become a flood of log lines (disk, CPU) or of STATUSTEXT.
+        log.debug("link %d: refused %s from %d/%d: %s", self.index, what, msg.get_srcSystem(),
+                  msg.get_srcComponent(), why)
         if now - self._last_refusal_report >= REFUSAL_REPORT_S:
             n, self._refused_unreported = self._refused_unreported, 0
             self._last_refusal_report = now
+            log.warning("link %d: refused %d message(s) since the last report, the latest %s "
+                        "from %d/%d: %s", self.index, n, what, msg.get_srcSystem(),
+                        msg.get_srcComponent(), why)
             self._broadcast_text(int(mavlink.MAV_SEVERITY_WARNING),
                                  f"link {self.index}: refused {n}: {why} {what}")
 
@@ -379,14 +384,14 @@ class Link:
 def receiver_task(index: int) -> Task:
     """Link `index`'s receive thread: paced by the transport's bounded wait."""
     return Task(f"mav{index}rx", paced_by="the transport (bounded wait)", budget_ms=5.0,
-                watchdog_ms=1000, message_ms=5000,
+                watchdog_ms=1000, message_ms=5000, switchable=False,
                 implementation="gcs_bridge.link:LinkReceiver")
 
 
 def sender_task(index: int) -> Task:
     """Link `index`'s send thread: paced by the earliest due message or queued answer."""
     return Task(f"mav{index}tx", paced_by="due telemetry and queued answers", budget_ms=5.0,
-                watchdog_ms=1000, message_ms=5000,
+                watchdog_ms=1000, message_ms=5000, switchable=False,
                 implementation="gcs_bridge.link:LinkSender")
 
 

@@ -89,10 +89,11 @@ class PendingCommand:
 
 
 RX_TASK = Task("legacy-rx", paced_by="the socket (0.1 s wait)", watchdog_ms=2000,
-               message_ms=1000, param_prefix="LEGRX",
+               message_ms=1000, param_prefix="LEGRX", switchable=False,
                implementation="legacy_protocol.adapter:_Rx")
 TX_TASK = Task("legacy-tx", period_ms=10.0, budget_ms=5.0, watchdog_ms=1000, message_ms=1000,
-               param_prefix="LEGTX", implementation="legacy_protocol.adapter:_Tx")
+               param_prefix="LEGTX", switchable=False,
+               implementation="legacy_protocol.adapter:_Tx")
 """The legacy protocol's two rows; the manager hands out their ids."""
 
 

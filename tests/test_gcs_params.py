@@ -204,3 +204,27 @@ def test_a_parameter_that_needs_a_restart_says_so() -> None:
         assert value_of(gcs, "TST_BOOT") is not None and v.params.get("TST_BOOT") == 2
         text = gcs.seen(2.0, "STATUSTEXT", lambda m: m.text.startswith("TST_BOOT"))
         assert text is not None and "next start" in text.text
+
+
+def test_no_ground_station_can_switch_off_the_link_it_talks_through(tmp_path: Path) -> None:
+    """The fault campaign's finding: a PARAM_SET storm on an unsigned link set MAV0RX_ENABLE to
+    0, the receive thread stopped, and the aircraft was deaf to every ground station, also after
+    a restart, because the value was persisted. The link threads' ENABLE is now read-only, and a
+    read-only value in a parameter file is ignored (the configuration decides)."""
+    with running(tmp_path) as (v, gcs):
+        for name in ("MAV0RX_ENABLE", "MAV0TX_ENABLE"):
+            param_set(gcs, name, struct.pack("<i", 0), param_codec.T_INT32)
+            err = gcs.recv(2.0, "PARAM_ERROR", lambda m, n=name: m.param_id == n)
+            assert err is not None and err.error == mavlink.MAV_PARAM_ERROR_READ_ONLY, name
+            assert v.params.get(name) == 1
+        # still listening: a read answers
+        gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"MAV0RX_ENABLE", -1))
+        m = value_of(gcs, "MAV0RX_ENABLE")
+        assert m is not None
+    # an earlier attack's file: the value is not applied on the next start
+    (tmp_path / "params.parm").write_text("MAV0RX_ENABLE 0\nTST_F 2.5\n", encoding="utf-8")
+    with running(tmp_path) as (v, gcs):
+        assert v.params.get("MAV0RX_ENABLE") == 1
+        assert v.params.get("TST_F") == 2.5
+        gcs.send(mavlink.MAVLink_param_request_read_message(1, 1, b"TST_F", -1))
+        assert value_of(gcs, "TST_F") is not None

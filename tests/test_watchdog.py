@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import gc
+import json
 import os
+import signal
 import threading
 import time
 import tracemalloc
+from pathlib import Path
 
 import pytest
 import serial
@@ -394,3 +397,55 @@ def test_the_first_window_starts_with_the_periodic_section_not_the_thread() -> N
         assert wait_for(lambda: all(t.cycles > 40 for t in threads), 5.0)
     assert [t.stalls for t in threads] == [0] * 6
     assert [t.restarts for t in threads] == [0] * 6
+
+
+def test_a_suspended_process_restarts_nothing_on_resume() -> None:
+    """SIGSTOP for 1.5 s (ten watchdog periods): every window is missed, by every thread and
+    the manager alike; on SIGCONT the manager sees it was not run, says so and restarts no one."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import json, os, signal, sys, threading, time
+        sys.path.insert(0, "tests")
+        from test_watchdog import Ticker, make_manager
+        from companion.watchdog import EventKind
+        threads = [Ticker(f"t{k}", thread_id=k + 1, period_ms=5.0, watchdog_ms=150)
+                   for k in range(4)]
+        mgr = make_manager(*threads)
+        events = mgr.subscribe_events(1000)
+        runner = threading.Thread(target=mgr.run, daemon=True)
+        runner.start()
+        t0 = time.monotonic()
+        while min(t.cycles for t in threads) < 50 and time.monotonic() - t0 < 5:
+            time.sleep(0.01)
+        print("READY", flush=True)
+        sys.stdin.readline()  # the test stops and continues us meanwhile
+        c0 = [t.cycles for t in threads]
+        t0 = time.monotonic()
+        while min(t.cycles - c for t, c in zip(threads, c0)) < 100 and time.monotonic() - t0 < 5:
+            time.sleep(0.01)
+        mgr.request_stop()
+        runner.join(5)
+        mgr.shutdown()
+        kinds = [e.kind.value for e in events.drain()]
+        print(json.dumps({"restarts": [t.restarts for t in threads], "kinds": kinds}), flush=True)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, cwd=str(Path(__file__).parents[1]))
+    try:
+        assert proc.stdout is not None and proc.stdin is not None
+        assert proc.stdout.readline().strip() == "READY"
+        os.kill(proc.pid, signal.SIGSTOP)
+        time.sleep(1.5)  # the fault itself: the process stays stopped this long
+        os.kill(proc.pid, signal.SIGCONT)
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["restarts"] == [0, 0, 0, 0]
+    assert "resumed" in result["kinds"] and "stall" not in result["kinds"]

@@ -363,8 +363,12 @@ class ParamRegistry:
                 issues.append(FileIssue(str(path), lineno, text, problem))
                 continue
             assert name is not None
+            if name in self and self.spec(name).read_only:
+                # read-only values come from the configuration or the code, never from a file
+                # that anyone (or an earlier attacker's PARAM_SET) may have written
+                continue
             try:
-                self.set(name, value, force=True)
+                self.set(name, value)
             except ParamError as exc:
                 issues.append(FileIssue(str(path), lineno, text, exc.reason))
         for issue in issues:

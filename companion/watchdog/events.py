@@ -21,6 +21,7 @@ class EventKind(enum.Enum):
     FAILED = "failed"  # restart intensity exceeded: given up, the others keep running
     DISABLED = "disabled"
     ENABLED = "enabled"
+    RESUMED = "resumed"  # the whole process was suspended (SIGSTOP, a VM pause): windows restart
 
 
 # MAVLink MAV_SEVERITY values, so bridges need no table of their own.
@@ -38,6 +39,7 @@ SEVERITY = {
     EventKind.FAILED: 2,
     EventKind.DISABLED: 5,
     EventKind.ENABLED: 5,
+    EventKind.RESUMED: 4,
 }
 
 

@@ -42,6 +42,12 @@ FIRST_ASSIGNED_ID = 6
 """Ids below are fixed by the vehicle's data sources (IMU 1, GPS 2, servo 3, estimator 4,
 control 5: the legacy protocol's contract); the manager hands out the rest."""
 
+SUSPEND_GAP_S = 1.0
+"""Host seconds between two manager wake-ups (due every granularity) beyond which the process
+is taken to have been suspended rather than the threads to have stalled."""
+SUSPEND_CPU_SHARE = 0.25
+"""...provided the process used less than this share of one core over the gap."""
+
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
               "Programmed execution time: the runtime stops cleanly after it. 0 = unlimited."),
@@ -217,10 +223,21 @@ class ThreadManager:
         if not self._started:
             self.start()
         clock = self.ctx.clock
+        last_host_s, last_cpu_s = time.monotonic(), time.process_time()
         while self._stop_reason is None:
             gran_ms = int(self.ctx.params.get("MGR_WDG_GRAN_MS"))
-            self._wake.wait(clock.to_host_s(gran_ms / 1000.0))
+            wait_host_s = clock.to_host_s(gran_ms / 1000.0)
+            self._wake.wait(wait_host_s)
             self._wake.clear()
+            now_host_s, now_cpu_s = time.monotonic(), time.process_time()
+            gap_s = now_host_s - last_host_s
+            # Suspended, not starved by one of our own threads: the process used (almost) no
+            # CPU over the gap. A thread holding the interpreter lock inside C for as long burns
+            # CPU the whole time, and is judged as usual.
+            if (gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
+                    and now_cpu_s - last_cpu_s < SUSPEND_CPU_SHARE * gap_s):
+                self._rebase(gap_s)
+            last_host_s, last_cpu_s = now_host_s, now_cpu_s
             self._process_commands()
             if self._stop_reason is not None:
                 break
@@ -359,6 +376,16 @@ class ThreadManager:
         t.restarts += 1
         if self._start_thread(t):
             self._emit(EventKind.RESTARTED, t.name, why)
+
+    def _rebase(self, gap_s: float) -> None:
+        """The manager itself did not run for `gap_s` (the process was stopped, the machine
+        suspended): no thread could cycle either, so judging them on that window would restart
+        every one of them at once. Every thread's window starts again from now."""
+        now = self.ctx.clock.monotonic_ns()
+        for t in self.threads:
+            self._armed[t.name] = False
+            self._schedule_check(t, now)
+        self._emit(EventKind.RESUMED, "manager", f"not run for {gap_s:.1f} s; windows restarted")
 
     def _check_threads(self) -> None:
         now = self.ctx.clock.monotonic_ns()

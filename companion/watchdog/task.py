@@ -65,6 +65,10 @@ class Task:
     """Prefix of the thread's parameters; empty: the name, upper case, cut to 6 letters."""
     implementation: str = ""
     """``module:Class`` of the thread, so its parameters can be listed without building it."""
+    switchable: bool = True
+    """False: `<PREFIX>_ENABLE` is read-only. For the threads that carry a ground link: a ground
+    station (or anyone on an unsigned link) that switched them off would leave the aircraft
+    deaf to every ground station, with no way back but the configuration."""
 
     def __post_init__(self) -> None:
         if not self.name:
@@ -97,7 +101,10 @@ class Task:
             int_param(f"{p}_MSG_MS", self.message_ms, 10, 3_600_000, "ms",
                       f"Period of the {self.name} thread's data messages to the ground."),
             int_param(f"{p}_ENABLE", 1, 0, 1, "",
-                      f"1 runs the {self.name} thread, 0 stops it cleanly."),
+                      f"1 runs the {self.name} thread, 0 stops it cleanly." if self.switchable
+                      else f"1: the {self.name} thread runs. Read-only: it carries a ground link, "
+                      "which is switched off in the configuration, not from the ground.",
+                      read_only=not self.switchable),
         ]
 
     def thread_class(self) -> type[ManagedThread]:
