@@ -8,7 +8,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint bench bench-quick docs clean
+.PHONY: run test lint bench bench-quick bench-faults docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,9 @@ bench: $(STAMP)
 
 bench-quick: $(STAMP)
 	$(BIN)/python bench/run_all.py --quick
+
+bench-faults: $(STAMP)
+	$(BIN)/python bench/faults_bench.py
 
 docs: $(STAMP)
 	$(BIN)/python -m companion.docgen docs/parameters.md

@@ -111,11 +111,12 @@ def read_key_file(path: Path) -> tuple[bytes, str]:
         raise KeyFileError(f"{p}: passphrase shorter than 8 characters")
     try:
         mode = p.stat().st_mode
-        if mode & (stat.S_IRWXG | stat.S_IRWXO):
-            log.warning("signing key file %s is readable by others (mode %o); chmod 600 it",
-                        p, stat.S_IMODE(mode))
-    except OSError:
-        pass
+    except OSError as exc:
+        raise KeyFileError(f"{p}: cannot stat signing key file: {exc.strerror or exc}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        # Anyone who can read the key can sign frames the aircraft obeys: refuse to fly on it.
+        raise KeyFileError(f"{p}: readable or writable by others (mode {stat.S_IMODE(mode):o}); "
+                           f"run chmod 600 {p}")
     return key_from_text(passphrase), passphrase
 
 

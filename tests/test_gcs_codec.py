@@ -190,6 +190,12 @@ def test_key_file_round_trip_and_errors(tmp_path) -> None:  # type: ignore[no-un
     assert new_key_file(path, force=True) != passphrase
     hex_file = tmp_path / "hex.key"
     hex_file.write_text("ab" * 32 + "\n")
+    for mode in (0o644, 0o640, 0o602):  # group or others may read or write it: refused
+        os.chmod(hex_file, mode)
+        with pytest.raises(KeyFileError, match="chmod 600") as info:
+            read_key_file(hex_file)
+        assert str(hex_file) in str(info.value) and f"{mode:o}" in str(info.value)
+    os.chmod(hex_file, 0o600)
     assert read_key_file(hex_file)[0] == bytes.fromhex("ab" * 32)
     for content, fragment in [("", "exactly one"), ("a\nb\n", "exactly one"),
                               ("short", "shorter than 8")]:

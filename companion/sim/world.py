@@ -409,7 +409,10 @@ def main(argv: list[str] | None = None) -> int:
         print("companion.sim.world: the runtime never said GO", file=sys.stderr)
         return 1
     stats = world.run()
-    print("STATS " + json.dumps(stats), flush=True)
+    try:
+        print("STATS " + json.dumps(stats), flush=True)
+    except BrokenPipeError:  # the runtime is gone (killed): nobody to report to
+        return 1
     return 0
 
 
