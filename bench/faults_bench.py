@@ -242,6 +242,29 @@ def row_vanish(d: float, dev: str, start: float, dur: float) -> Row:
     return Row(f"{dev} port vanishes {dur:g} s", f"--vanish {dev}:{start}:{dur}", figs)
 
 
+def row_thread(d: float, thread: str, kind: str, at_s: float, label: str) -> Row:
+    f, s, code, _ = fly(d, ["--thread-fault", f"{thread}:{kind}:{at_s:g}"])
+    figs = common(s, f, code)
+    if s is not None:
+        t = thread_of(s, thread)
+        figs[thread] = (f"crashes {t.get('crashes')}, interrupted {t.get('interrupted')}, "
+                        f"abandoned {t.get('abandoned')}, failed {t.get('failed')}, "
+                        f"rate {t.get('rate_hz')} Hz at the end")
+        armed = s.get("thread_faults", [])
+        ev = [e for e in s["events"] if e["thread"] == thread and e["kind"] in
+              ("crash", "stall", "restarted", "failed")]
+        if armed and ev:
+            t0 = armed[0]["t_ns"] / 1e9
+            first = next((e for e in ev if e["kind"] in ("crash", "stall")), None)
+            last = ev[-1]
+            if first is not None:
+                figs["detected after"] = f"{(first['t_s'] - t0) * 1000:.0f} ms ({first['kind']})"
+            figs[f"{last['kind']} after"] = f"{(last['t_s'] - t0) * 1000:.0f} ms"
+        if f.rss_mb:
+            figs["RSS first / peak"] = f"{f.rss_mb[0]:.0f} / {max(f.rss_mb):.0f} MB"
+    return Row(f"{thread}: {label}", f"--thread-fault {thread}:{kind}:{at_s:g}", figs)
+
+
 def row_mavlink_flood(d: float, flood_s: float, rate: float) -> Row:
     def during(f: Flight) -> dict[str, str]:
         out: dict[str, str] = {}
@@ -405,6 +428,13 @@ def main() -> int:
         rows.append(row_device(d, "servo", "badsum=0.05,cut=0.05", "cut frames, bad checksums "
                                "(5 % each)"))
         rows.append(row_vanish(d, "gps", 20.0, 5.0))
+    rows.append(row_thread(d, "estimator", "raise", 20, "an exception in step"))
+    rows.append(row_thread(d, "control", "crash-loop", 20, "an exception in every step "
+                           "(restart intensity exceeded)"))
+    if not args.quick:
+        rows.append(row_thread(d, "gps", "pyloop", 20, "a Python loop ignoring its stop event"))
+        rows.append(row_thread(d, "estimator", "cblock", 20, "stuck inside C"))
+        rows.append(row_thread(d, "estimator", "alloc", 20, "allocates 1 MiB per step for 10 s"))
     rows.append(row_mavlink_flood(d, 5.0 if args.quick else 8.0, 3000.0))
     if not args.quick:
         rows.append(row_legacy_flood(d, 8.0, 2000.0))

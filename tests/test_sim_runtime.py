@@ -199,6 +199,42 @@ def test_injected_faults_are_survived_and_counted(tmp_path: Path) -> None:
     assert np.isfinite(est["roll_rad"]).all()
 
 
+def test_faults_injected_into_the_runtime_threads_are_survived(tmp_path: Path) -> None:
+    """A crash, a Python loop that ignores its stop event and a block inside C, each in a real
+    flight; and a thread that crashes at every step is left down while the others fly on."""
+    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", "40", "--scenario", "level",
+                                  "--thread-fault", "estimator:raise:8",
+                                  "--thread-fault", "gps:pyloop:12",
+                                  "--thread-fault", "estimator:cblock:20",
+                                  "--thread-fault", "control:crash-loop:10", "--json"),
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout)
+    threads = {t["name"]: t for t in summary["threads"]}
+    assert [f["kind"] for f in summary["thread_faults"]] == ["raise", "crash-loop", "pyloop",
+                                                             "cblock"]
+    est, gps, ctl = threads["estimator"], threads["gps"], threads["control"]
+    assert est["crashes"] == 1 and est["abandoned"] == 1 and est["restarts"] == 2
+    assert gps["interrupted"] == 1 and gps["restarts"] == 1
+    assert ctl["failed"] and not est["failed"]
+    assert threads["imu"]["restarts"] == threads["servo"]["restarts"] == 0
+    kinds = [(e["kind"], e["thread"]) for e in summary["events"]]
+    assert ("failed", "control") in kinds and ("abandoned", "estimator") in kinds
+    assert ("resumed", "manager") not in kinds  # the manager's own joins are not a suspension
+    # the estimator came back after each fault: its log runs to the end of the flight
+    t = read_log(flight_dir(tmp_path) / "estimator.bin").data(1)["time_s"]
+    assert t[-1] - t[0] > 0.8 * 40
+    assert threads["imu"]["rate_hz"] > 95
+
+
+def test_a_bad_thread_fault_is_refused_by_name(tmp_path: Path) -> None:
+    proc = subprocess.run(sim_cmd(tmp_path, "--thread-fault", "estimator:explode:3"),
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "estimator:explode:3" in proc.stderr and "crash-loop" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
 def test_several_vehicles(tmp_path: Path) -> None:
     base = free_udp_port()
     proc = subprocess.run(

@@ -449,3 +449,24 @@ def test_a_suspended_process_restarts_nothing_on_resume() -> None:
     result = json.loads(out.strip().splitlines()[-1])
     assert result["restarts"] == [0, 0, 0, 0]
     assert "resumed" in result["kinds"] and "stall" not in result["kinds"]
+
+
+def test_a_slow_restart_does_not_shorten_the_other_threads_windows() -> None:
+    """Stopping a thread that ignores its stop event takes the manager twice MGR_SHUTDOWN_MS.
+    The threads checked after it in the same pass used to get a window scheduled from before
+    that wait, which ended at the next tick: a healthy thread whose cycle is longer than a tick
+    was declared stalled and restarted (in SITL: the estimator when the GPS thread hung)."""
+    # same watchdog period, started together: their checks fall due in the same pass, as the
+    # runtime's threads with 1000 ms watchdogs do
+    bad = Ticker("bad", thread_id=1, period_ms=5.0, watchdog_ms=200)
+    good = [Ticker(f"good{k}", thread_id=k + 2, period_ms=40.0, watchdog_ms=200)
+            for k in range(4)]
+    bad.mode = "pyloop"  # from its fourth cycle on
+    mgr = make_manager(bad, *good, MGR_RST_INTENS=1, MGR_SHUTDOWN_MS=300)  # stop > a window
+    with RunInBackground(mgr):
+        assert wait_for(lambda: bad.failed, 10.0)
+        cycles = [g.cycles for g in good]
+        assert wait_for(lambda: all(g.cycles > c + 10 for g, c in zip(good, cycles)), 5.0)
+    assert bad.interrupted >= 1
+    assert [g.stalls for g in good] == [0, 0, 0, 0]
+    assert [g.restarts for g in good] == [0, 0, 0, 0]

@@ -18,6 +18,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"companion sim: unknown scenario {args.scenario!r} ({', '.join(SCENARIOS)})",
               file=sys.stderr)
         return 2
+    from companion.sim.thread_faults import parse_thread_fault
+
+    for text in args.thread_fault:
+        try:
+            parse_thread_fault(text)
+        except ValueError as exc:
+            print(f"companion sim: {exc}", file=sys.stderr)
+            return 2
     if args.vehicles > 1:
         argv = [a for a in sys.argv[1:]]
         base = _strip(argv, ("--vehicles",), takes_value=True)
@@ -33,7 +41,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      aircraft=args.aircraft, scale=scale,
                      wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
                      gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
-                     faults=args.fault, vanish=args.vanish, auto_switch_s=args.auto_switch,
+                     faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
+                     auto_switch_s=args.auto_switch,
                      no_noise=args.no_noise)
 
     def live(rt: object) -> None:
@@ -107,6 +116,9 @@ def add_commands(sub: argparse._SubParsersAction,
                    help="inject faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,silence=30-32")
     p.add_argument("--vanish", action="append", default=[], metavar="DEV:START:DURATION",
                    help="make a device's port disappear and return")
+    p.add_argument("--thread-fault", action="append", default=[], metavar="THREAD:KIND:AT_S",
+                   help="inject a fault into a runtime thread at a flight time: KIND is raise, "
+                   "crash-loop, pyloop, cblock or alloc (e.g. estimator:raise:20)")
     p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
                    help="auto scenario: when the pilot engages automatic mode")
     p.add_argument("--no-noise", action="store_true", help="perfect IMU (no noise or bias)")

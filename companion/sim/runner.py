@@ -20,6 +20,12 @@ from companion.core.config import Config
 from companion.core.files import write_json_atomic
 from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+from companion.sim.thread_faults import (
+    ThreadFaultInjector,
+    injector_factory,
+    parse_thread_fault,
+)
+from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +48,8 @@ class SimOptions:
     gps_ashtech: bool = False
     faults: list[str] = field(default_factory=list)
     vanish: list[str] = field(default_factory=list)
+    thread_faults: list[str] = field(default_factory=list)
+    """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.thread_faults)."""
     auto_switch_s: float = 20.0
     no_noise: bool = False
 
@@ -131,11 +139,18 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             cfg.vehicle.home = ",".join(repr(float(v)) for v in world.devices["home"])
             t0 = 0.0  # set at take-off, below
             first = True
+            injectors: list[ThreadFaultInjector] = []
+            faults = [parse_thread_fault(f) for f in sim.thread_faults]
+
+            def inject(ctx: RuntimeContext, manager: ThreadManager) -> ThreadFaultInjector:
+                injectors.append(injector_factory(faults)(ctx, manager))
+                return injectors[-1]
+
             while True:
                 rt = Runtime(cfg, RuntimeOptions(
                     clock=clock, flight_dir=flight_dir,
                     extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}},
-                    extra_bridges=live_view_bridges(cfg)))
+                    extra_bridges=live_view_bridges(cfg) + ([inject] if faults else [])))
                 if sim.gps_ashtech:
                     rt.ctx.params.set("GPS_PASHR", 1)
                 if on_runtime is not None:
@@ -158,6 +173,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             stats = world.stop()
     summary = rt.summary()
     summary["simulator"] = stats
+    if injectors:
+        summary["thread_faults"] = [a for inj in injectors for a in inj.armed]
     summary["host_seconds"] = round(host_s, 2)
     summary["clock_scale"] = clock.scale
     try:

@@ -237,7 +237,6 @@ class ThreadManager:
             if (gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
                     and now_cpu_s - last_cpu_s < SUSPEND_CPU_SHARE * gap_s):
                 self._rebase(gap_s)
-            last_host_s, last_cpu_s = now_host_s, now_cpu_s
             self._process_commands()
             if self._stop_reason is not None:
                 break
@@ -247,6 +246,9 @@ class ThreadManager:
                     hook()
                 except Exception:
                     log.exception("manager tick hook failed")
+            # the gap is measured over the wait only: the manager's own work (joining a thread
+            # that will not stop takes up to twice MGR_SHUTDOWN_MS) is not a suspension
+            last_host_s, last_cpu_s = time.monotonic(), time.process_time()
             limit_s = duration_s if duration_s is not None else int(
                 self.ctx.params.get("MGR_EXEC_TIME_S"))
             if limit_s and clock.monotonic_ns() - self._start_mono_ns >= limit_s * 1e9:
@@ -388,8 +390,11 @@ class ThreadManager:
         self._emit(EventKind.RESUMED, "manager", f"not run for {gap_s:.1f} s; windows restarted")
 
     def _check_threads(self) -> None:
-        now = self.ctx.clock.monotonic_ns()
         for t in self.threads:
+            # Read the clock per thread: restarting one thread may take the manager up to twice
+            # MGR_SHUTDOWN_MS (a worker that will not stop), and a window scheduled from a time
+            # read before that would end almost at once and find a healthy thread "stalled".
+            now = self.ctx.clock.monotonic_ns()
             if t.failed:
                 continue
             enabled = t.enabled
