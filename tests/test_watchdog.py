@@ -466,7 +466,7 @@ def test_a_slow_restart_does_not_shorten_the_other_threads_windows() -> None:
     with RunInBackground(mgr):
         assert wait_for(lambda: bad.failed, 10.0)
         cycles = [g.cycles for g in good]
-        assert wait_for(lambda: all(g.cycles > c + 10 for g, c in zip(good, cycles)), 5.0)
+        assert wait_for(lambda: all(g.cycles > c + 10 for g, c in zip(good, cycles, strict=True)), 5.0)
     assert bad.interrupted >= 1
     assert [g.stalls for g in good] == [0, 0, 0, 0]
     assert [g.restarts for g in good] == [0, 0, 0, 0]
