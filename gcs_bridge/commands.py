@@ -78,7 +78,9 @@ def _param(value: Any) -> float | None:
         f = float(value)
     except (TypeError, ValueError):
         return None
-    return None if math.isnan(f) else f
+    # NaN means "not given" (MAVLink's convention); an infinity is no usable value either, and
+    # would raise in every int() below (a command that is never acknowledged)
+    return f if math.isfinite(f) else None
 
 
 def from_message(msg: RxMessage) -> Command:
@@ -120,7 +122,11 @@ class CommandHandler:
             if seen is not None and now - seen[0] < DUPLICATE_WINDOW_S:
                 link.post([ack(cmd, seen[1])])
                 return
-        result = self._dispatch(link, cmd)
+        try:
+            result = self._dispatch(link, cmd)
+        except Exception:  # a handler's bug must still answer, and never reach the link
+            log.exception("command %d from %d/%d", cmd.command, *cmd.source)
+            result = FAILED
         if result is None:  # acknowledged later, by the manager's reply
             return
         self._remember(key, now, result)
@@ -167,8 +173,8 @@ class CommandHandler:
             return self._set_interval(link, cmd)
         if c == mavlink.MAV_CMD_GET_MESSAGE_INTERVAL:
             msg_id = cmd.p(1)
-            if msg_id is None:
-                return DENIED
+            if msg_id is None or msg_id != int(msg_id) or not 0 <= msg_id <= 0xFFFF:
+                return DENIED  # MESSAGE_INTERVAL carries a uint16 id
             link.post([ack(cmd, ACCEPTED), mavlink.MAVLink_message_interval_message(
                 int(msg_id), link.interval_us(int(msg_id)))])
             return None

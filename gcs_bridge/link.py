@@ -183,6 +183,10 @@ class Link:
         # ground stations' signing clocks are real ones
         return signing_timestamp(time.time_ns())
 
+    @property
+    def _datagrams(self) -> bool:
+        return self.endpoint.kind.startswith("udp")
+
     def reset_parsers(self) -> None:
         self._parsers.clear()
 
@@ -213,6 +217,11 @@ class Link:
                 log.debug("link %d: unparsable data from %s: %s", self.index, peer, exc)
                 self._parsers.pop(peer, None)
                 continue
+            if self._datagrams and len(parser.buf) > parser.buf_index:
+                # A datagram carries whole frames: what is left of one is a cut or corrupt
+                # frame, and must not swallow the start of the same peer's next datagram.
+                self.counters.parse_errors += 1
+                _reset_parser(parser)
             for msg in msgs:
                 frames += 1
                 self._on_message(msg)
@@ -378,6 +387,14 @@ class Link:
 
     def describe(self) -> str:
         return f"link {self.index} ({self.endpoint.url})"
+
+
+def _reset_parser(parser: mavlink.MAVLink) -> None:
+    """Drop a pymavlink parser's partial frame (the state its constructor sets)."""
+    parser.buf = bytearray()
+    parser.buf_index = 0
+    parser.expected_length = mavlink.HEADER_LEN_V1 + 2
+    parser.have_prefix_error = False
 
 
 # ---------------------------------------------------------------------------------- threads

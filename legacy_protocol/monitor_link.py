@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import collections
 import logging
+import re
 import select
 import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from legacy_protocol.codec import (
     COMMAND_TYPES,
@@ -75,6 +76,17 @@ M = TypeVar("M", ThreadStatus, ManagerStatus, CommandAck, Imu, Gps, Servo, Estim
 
 class LinkError(Exception):
     """A socket could not be opened or used; the message names the address."""
+
+
+MAX_TALLY_KEYS = 64
+_DIGITS = re.compile(r"\d+(\.\d+)?(e[+-]?\d+)?")
+
+
+def _count_bounded(counter: collections.Counter[Any], key: Any, overflow: Any) -> None:
+    if key in counter or len(counter) < MAX_TALLY_KEYS - 1:
+        counter[key] += 1
+    else:
+        counter[overflow] += 1
 
 
 @dataclass(frozen=True)
@@ -180,8 +192,11 @@ class Fleet:
         result = rx.result
         if isinstance(result, DecodeError):
             self.malformed += 1
-            self.malformed_reasons[result.reason.split(":")[0]] += 1
-            self.malformed_by_source[rx.source] += 1
+            # a category, not the hostile value itself: numbers become N, and both tables stay
+            # bounded whatever a sender (or a spoofed source address) puts in its datagrams
+            reason = _DIGITS.sub("N", result.reason.split(":")[0])[:80]
+            _count_bounded(self.malformed_reasons, reason, "other")
+            _count_bounded(self.malformed_by_source, rx.source, ("other", 0))
             self.last_error = (rx.source, result)
             # The header cannot be trusted, so charge it to whichever aircraft uses that address.
             for suspect in self.vehicles.values():

@@ -427,7 +427,7 @@ def test_fuzz_random_bytes_never_raise(chunks: list[bytes], allow: bool) -> None
     decoder = NmeaDecoder(allow_no_checksum=allow, expected_sentences=["GGA"])
     for i, chunk in enumerate(chunks):
         decoder.feed(chunk, i)
-        assert len(decoder._buf) <= MAX_LINE_CHARS
+        assert len(decoder._buf) <= MAX_LINE_CHARS + 2  # a full line may await its 2 checksum digits
     decoder.flush(len(chunks))
 
 

@@ -47,8 +47,10 @@ class VehicleConfig:
             lat, lon, alt = (float(v) for v in self.home.split(","))
         except ValueError:
             raise ConfigError(f"vehicle.home: expected 'lat_deg,lon_deg,alt_m', got {self.home!r}") from None
-        if not (-90 <= lat <= 90 and -180 <= lon <= 360):
-            raise ConfigError(f"vehicle.home: {self.home!r} is not a valid position")
+        if not (-90 <= lat <= 90 and -180 <= lon <= 360 and -1000 <= alt <= 100_000):
+            # (NaN fails every comparison, so it is refused here too)
+            raise ConfigError(f"vehicle.home: {self.home!r} is not a valid position "
+                              "(latitude -90..90, longitude -180..360, altitude -1000..100000 m)")
         return lat, lon, alt
 
 
@@ -109,8 +111,12 @@ def load_config(path: Path | None) -> Config:
         data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte offset {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: values nested too deeply to read") from None
     _merge(cfg, data, str(path), "")
     return cfg
 

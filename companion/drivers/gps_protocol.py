@@ -205,7 +205,9 @@ def _coord(
 ) -> float | None:
     text = _field(msg, value_name)
     hemi = _field(msg, hemi_name)
-    if not text and not hemi:
+    if not text:
+        # no value, with or without a hemisphere letter: no position (pynmea2 would read an
+        # empty value as 0.0, a false fix at 0 N 0 E)
         return None
     try:
         value = dm_to_sd(text)
@@ -320,6 +322,10 @@ _EXTRACT: dict[str, Callable[[pynmea2.NMEASentence], Record]] = {
 }
 
 
+MAX_EPOCH_SENTENCES = 64
+"""Sentence addresses kept per epoch (a receiver sends about ten)."""
+
+
 class _Epoch:
     __slots__ = ("key_ms", "utc", "first_t_ns", "parts", "addresses")
 
@@ -334,7 +340,8 @@ class _Epoch:
         held = self.parts.get(kind)
         if held is None or priority < held[0]:
             self.parts[kind] = (priority, record)
-        self.addresses.append(address)
+        if len(self.addresses) < MAX_EPOCH_SENTENCES:  # an epoch that never completes
+            self.addresses.append(address)          # (no time in it) stays bounded
 
 
 def _pick(name: str, *records: Record) -> Any:
@@ -582,6 +589,10 @@ class NmeaDecoder:
             alt = alt_ell - geoid
         if alt_ell is None and alt is not None and geoid is not None:
             alt_ell = alt + geoid
+        if alt is not None and not math.isfinite(alt):  # sums of huge but finite fields
+            alt = None
+        if alt_ell is not None and not math.isfinite(alt_ell):
+            alt_ell = None
         fix = _pick("fix", gga, pos, rmc, gsa)
         speed = _pick("speed_m_s", rmc, vtg, pos)
         course = _pick("course_deg", rmc, vtg, pos)
