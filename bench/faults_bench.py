@@ -319,6 +319,40 @@ def row_legacy_flood(d: float, flood_s: float, rate: float) -> Row:
     return Row("legacy UDP flood (allowed source)", f"random datagrams, {rate:g}/s", figs)
 
 
+def row_disk_full(d: float, size_kb: int) -> Row:
+    """The flight's log directory on a size-limited tmpfs (needs root to mount it; without root
+    the row says so instead of pretending)."""
+    mnt = Path(tempfile.mkdtemp(prefix="faults-disk-"))
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs",
+                              str(mnt)], capture_output=True, text=True)
+    if mounted.returncode != 0:
+        return Row("disk full while logging", f"tmpfs of {size_kb} kB",
+                   {"skipped": "cannot mount a tmpfs here (needs root): "
+                               + mounted.stderr.strip()[:80]})
+    try:
+        flight = Flight(d, ["--log-dir", str(mnt)])
+        flight.start()
+        ready = flight.wait_ready()
+        assert flight.proc is not None
+        deadline = time.monotonic() + d / SCALE + 60
+        while flight.proc.poll() is None and time.monotonic() < deadline:
+            flight.sample_rss()
+            time.sleep(0.5)
+        s, code = flight.finish(5.0)
+        figs = common(s, flight, code)
+        if not ready:
+            figs["ready"] = "runtime never answered"
+        if s is not None:
+            figs["records dropped (logging off)"] = ", ".join(
+                f"{t['name']} {t['log_dropped']}" for t in s["threads"] if t["log_dropped"])
+            figs["summary.json"] = ("written" if any(p.name == "summary.json"
+                                                     for p in mnt.glob("*/summary.json"))
+                                    else "not written (disk full); printed with --json")
+        return Row("disk full while logging", f"--log-dir on a tmpfs of {size_kb} kB", figs)
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
 def row_sigstop(d: float, stop_s: float) -> Row:
     def during(f: Flight) -> dict[str, str]:
         assert f.proc is not None
@@ -438,6 +472,7 @@ def main() -> int:
     rows.append(row_mavlink_flood(d, 5.0 if args.quick else 8.0, 3000.0))
     if not args.quick:
         rows.append(row_legacy_flood(d, 8.0, 2000.0))
+    rows.append(row_disk_full(d, 1500))
     rows.append(row_sigstop(d, 5.0))
     rows.append(row_nominal_starts(4 if args.quick else 20, 15.0))
     if not args.quick:

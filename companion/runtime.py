@@ -26,7 +26,7 @@ from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
 from companion.drivers.registry import DEVICES, make_driver
 from companion.tasks import VEHICLE_TASKS
-from companion.watchdog import ManagedThread, RuntimeContext, Task, ThreadManager
+from companion.watchdog import EventKind, ManagedThread, RuntimeContext, Task, ThreadManager
 from companion.watchdog.manager import MANAGER_PARAMS
 
 log = logging.getLogger(__name__)
@@ -134,10 +134,15 @@ class Runtime:
             from companion.logs import LogService
 
             self.logs = LogService(self.flight_dir, clock_ns=clock.realtime_ns)
+            # set after the manager exists (below): a full disk is reported like a watchdog event
         self.ctx = RuntimeContext(clock=clock, params=params, logs=self.logs,
                                   state=VehicleState(), vehicle_id=cfg.vehicle.id,
                                   home_lla=cfg.vehicle.home_lla(), flight_dir=self.flight_dir)
         self.manager = ThreadManager(self.ctx, build_threads(cfg, self.opts))
+        if self.logs is not None:
+            manager = self.manager
+            self.logs.on_log_off = lambda label, reason: manager.report(
+                EventKind.LOG_OFF, label, reason.rsplit(": ", 1)[-1])
         self.bridges: list[Bridge] = []
         try:
             self._build_bridges(cfg, dry)

@@ -261,3 +261,45 @@ def test_every_device_is_one_row_of_the_registry() -> None:
         assert type(drv).__name__ == device.driver and drv.name == name
     with pytest.raises(ValueError, match="unknown device 'baro'"):
         make_driver("baro", "loop://")
+
+
+def test_a_full_disk_turns_one_log_off_reports_it_and_the_driver_flies_on(
+        imu_dev: FakeDevice, tmp_path: Path) -> None:
+    """ENOSPC on the IMU log (its file is /dev/full, which refuses every write with it): the
+    runtime says so as an event the ground stations relay, and the IMU keeps publishing."""
+    from companion.core.config import Config
+    from companion.runtime import Runtime, RuntimeOptions
+
+    flight = tmp_path / "flight"
+    flight.mkdir()
+    os.symlink("/dev/full", flight / "imu.bin")
+    cfg = Config()
+    cfg.logs.dir = str(tmp_path)
+    cfg.params.file = str(tmp_path / "params.parm")
+    cfg.devices.imu.port = str(imu_dev.link)
+    cfg.devices.gps.enabled = cfg.devices.servo.enabled = False
+    rt = Runtime(cfg, RuntimeOptions(mavlink=False, legacy=False, estimator=False,
+                                     control=False, flight_dir=flight))
+    events = rt.manager.subscribe_events(256)
+    runner = threading.Thread(target=rt.run, kwargs={"handle_signals": False}, daemon=True)
+    runner.start()
+    seen: list[tuple[str, str, str]] = []
+    try:
+        frames = imu_stream(200)
+
+        def fed_and_reported() -> bool:
+            if frames:
+                imu_dev.write(frames.pop(0))
+            seen.extend((e.kind.value, e.thread, e.detail) for e in events.drain())
+            return not frames and any(k == "logging off" for k, _, _ in seen)
+
+        assert wait_for(fed_and_reported, 10.0, interval_s=0.005)
+        sample = rt.ctx.state.imu.read()
+        assert sample is not None and sample.counter is not None
+    finally:
+        rt.manager.request_stop()
+        runner.join(10)
+    imu = next(t for t in rt.summary()["threads"] if t["name"] == "imu")
+    assert imu["restarts"] == 0 and imu["cycles"] >= 150
+    off = [s for s in seen if s[0] == "logging off"]
+    assert off == [("logging off", "imu", "No space left on device (errno 28)")]

@@ -461,6 +461,10 @@ class LogService:
         #: Data records are refused (not queued, counted per log) while paused: an operator's
         #: "stop logging"; definitions and Begin/End markers still go through.
         self.paused = False
+        #: Called from the writer thread, once per log, when it switches to "logging off"
+        #: (label, reason): the runtime turns it into an event the ground stations see.
+        self.on_log_off: Callable[[str, str], None] | None = None
+        self._reported_off: set[int] = set()
 
     def __enter__(self) -> LogService:
         self.start()
@@ -575,6 +579,15 @@ class LogService:
                 sink.accepting = False
                 sink.reason = f"{sink.label}: internal error"
                 sink.lost += len(batch)
+        callback = self.on_log_off
+        for sink in groups:
+            if sink.off and id(sink) not in self._reported_off:
+                self._reported_off.add(id(sink))
+                if callback is not None:
+                    try:
+                        callback(sink.label, sink.reason or "write error")
+                    except Exception:
+                        log.exception("log writer: on_log_off callback failed")
 
     def _final_pass(self) -> None:
         self._drain()

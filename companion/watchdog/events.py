@@ -22,6 +22,7 @@ class EventKind(enum.Enum):
     DISABLED = "disabled"
     ENABLED = "enabled"
     RESUMED = "resumed"  # the whole process was suspended (SIGSTOP, a VM pause): windows restart
+    LOG_OFF = "logging off"  # a thread's log could not be written (disk full): the thread flies on
 
 
 # MAVLink MAV_SEVERITY values, so bridges need no table of their own.
@@ -40,6 +41,7 @@ SEVERITY = {
     EventKind.DISABLED: 5,
     EventKind.ENABLED: 5,
     EventKind.RESUMED: 4,
+    EventKind.LOG_OFF: 3,
 }
 
 

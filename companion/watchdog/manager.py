@@ -165,6 +165,11 @@ class ThreadManager:
             self._stop_reason = reason
         self._wake.set()
 
+    def report(self, kind: EventKind, thread: str, detail: str = "") -> None:
+        """Publish an event about a thread from outside the manager (the log writer's
+        "logging off"): logged, and sent to every subscriber like the manager's own. Any thread."""
+        self._emit(kind, thread, detail)
+
     def subscribe_events(self, capacity: int = 256) -> MessageQueue[WatchdogEvent]:
         q: MessageQueue[WatchdogEvent] = MessageQueue(capacity, drop_oldest=True)
         with self._sub_lock:
