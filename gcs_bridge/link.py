@@ -8,6 +8,9 @@ the next telemetry stream due, so an answer leaves at once and telemetry leaves 
 Everything a link remembers between messages (rates set by ground stations, the parameter list
 in progress, the thread-status rotation) lives here rather than in the threads, so a thread
 restarted by the watchdog carries on where it stopped.
+
+Size: the link's shared state and its two thread classes belong together (the threads are thin
+shells over `Link`); the parsers, codecs and stream table already live in their own modules.
 """
 
 from __future__ import annotations

@@ -79,7 +79,12 @@ class LinkError(Exception):
 
 
 MAX_TALLY_KEYS = 64
-_DIGITS = re.compile(r"\d+(\.\d+)?(e[+-]?\d+)?")
+_NUMBER = re.compile(r"0x[0-9A-Fa-f]+|\d+(\.\d+)?(e[+-]?\d+)?")
+
+
+def _category(reason: str) -> str:
+    """A decode error's reason without its values (hex type codes kept: at most 256 of them)."""
+    return _NUMBER.sub(lambda m: m[0] if m[0].startswith("0x") else "N", reason.split(":")[0])[:80]
 
 
 def _count_bounded(counter: collections.Counter[Any], key: Any, overflow: Any) -> None:
@@ -194,7 +199,7 @@ class Fleet:
             self.malformed += 1
             # a category, not the hostile value itself: numbers become N, and both tables stay
             # bounded whatever a sender (or a spoofed source address) puts in its datagrams
-            reason = _DIGITS.sub("N", result.reason.split(":")[0])[:80]
+            reason = _category(result.reason)
             _count_bounded(self.malformed_reasons, reason, "other")
             _count_bounded(self.malformed_by_source, rx.source, ("other", 0))
             self.last_error = (rx.source, result)

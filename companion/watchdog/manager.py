@@ -13,6 +13,9 @@ seen at the previous check (the alive flag, tested and reset):
 Restart policy uses Erlang/OTP's terms: restart type per thread, and an intensity (at most
 `MGR_RST_INTENS` restarts within `MGR_RST_PER_S`) beyond which the thread is marked failed and
 left down while the others keep running.
+
+Size: one class holding one state machine (start, check, restart, stop, suspend), with its
+parameters and rules; split over files it would be harder to read, not easier.
 """
 
 from __future__ import annotations
