@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -35,18 +34,13 @@ from pymavlink import mavutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from mavflood import flood  # noqa: E402
+from mavlink_bench import free_port  # noqa: E402
 
 from companion.logs import read_log  # noqa: E402
 
 SCALE = 5.0  # --fast
 IMU_HZ = 100.0
 GPS_HZ = 10.0
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -56,8 +50,8 @@ class Flight:
     duration_s: float
     extra: list[str] = field(default_factory=list)
     root: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="faults-")))
-    mav_port: int = field(default_factory=free_udp_port)
-    legacy_port: int = field(default_factory=free_udp_port)
+    mav_port: int = field(default_factory=free_port)
+    legacy_port: int = field(default_factory=free_port)
     proc: subprocess.Popen[str] | None = None
     rss_mb: list[float] = field(default_factory=list)
     t_start: float = 0.0
@@ -290,28 +284,18 @@ def row_mavlink_flood(d: float, flood_s: float, rate: float) -> Row:
 def row_legacy_flood(d: float, flood_s: float, rate: float) -> Row:
     def during(f: Flight) -> dict[str, str]:
         rng = np.random.default_rng(3)
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        n = 0
-        t_end = time.monotonic() + flood_s
-        period = 1.0 / rate
-        next_t = time.monotonic()
-        while time.monotonic() < t_end:
-            if time.monotonic() < next_t:
-                time.sleep(0.001)
-                continue
-            next_t += period
-            size = int(rng.integers(1, 1400))
-            payload = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
-            if n % 3 == 0:  # a plausible header so the parser goes past the first byte
-                payload = bytes([0x81, 0x00]) + payload
-            try:
-                sock.sendto(payload, ("127.0.0.1", f.legacy_port))
-            except OSError:
-                pass
-            n += 1
-        sock.close()
+        n = [0]
+
+        def datagram() -> bytes:
+            payload = rng.integers(0, 256, int(rng.integers(1, 1400)), dtype=np.uint8).tobytes()
+            n[0] += 1
+            # every third one starts like a command, so the parser goes past the first byte
+            return bytes([0x81, 0x00]) + payload if n[0] % 3 == 1 else payload
+
+        sent = flood("127.0.0.1", f.legacy_port, flood_s, rate_per_s=rate, datagram=datagram)
         t = param_read_s(f.mav_port, 5.0)
-        return {"flood": f"{n} datagrams", "GCS after": f"answered in {t:.2f} s" if t else "no answer"}
+        return {"flood": f"{sent['datagram']} datagrams",
+                "GCS after": f"answered in {t:.2f} s" if t else "no answer"}
 
     f, s, code, found = fly(d, [], during)
     figs = common(s, f, code)
@@ -330,18 +314,9 @@ def row_disk_full(d: float, size_kb: int) -> Row:
                    {"skipped": "cannot mount a tmpfs here (needs root): "
                                + mounted.stderr.strip()[:80]})
     try:
-        flight = Flight(d, ["--log-dir", str(mnt)])
-        flight.start()
-        ready = flight.wait_ready()
-        assert flight.proc is not None
-        deadline = time.monotonic() + d / SCALE + 60
-        while flight.proc.poll() is None and time.monotonic() < deadline:
-            flight.sample_rss()
-            time.sleep(0.5)
-        s, code = flight.finish(5.0)
+        flight, s, code, found = fly(d, ["--log-dir", str(mnt)])  # the last --log-dir wins
         figs = common(s, flight, code)
-        if not ready:
-            figs["ready"] = "runtime never answered"
+        figs.update(found)
         if s is not None:
             figs["records dropped (logging off)"] = ", ".join(
                 f"{t['name']} {t['log_dropped']}" for t in s["threads"] if t["log_dropped"])

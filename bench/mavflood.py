@@ -16,6 +16,7 @@ import socket
 import struct
 import time
 from collections import Counter
+from collections.abc import Callable
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -84,9 +85,16 @@ class Flood:
 
 
 def flood(host: str, port: int, seconds: float, *, seed: int = 0,
-          rate_per_s: float = 5000.0) -> Counter[str]:
-    """Send hostile datagrams to host:port for `seconds` at about `rate_per_s`."""
+          rate_per_s: float = 5000.0,
+          datagram: Callable[[], bytes] | None = None) -> Counter[str]:
+    """Send hostile datagrams to host:port for `seconds` at about `rate_per_s`: MAVLink ones
+    (`Flood`), or whatever `datagram` makes (counted as "datagram")."""
     f = Flood(seed)
+    make = f.datagram
+    if datagram is not None:
+        def make() -> bytes:
+            f.sent["datagram"] += 1
+            return datagram()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setblocking(False)
     t_end = time.monotonic() + seconds
@@ -99,7 +107,7 @@ def flood(host: str, port: int, seconds: float, *, seed: int = 0,
                 continue
             next_t += period
             try:
-                sock.sendto(f.datagram(), (host, port))
+                sock.sendto(make(), (host, port))
             except (BlockingIOError, OSError):
                 f.sent["send_failed"] += 1
     finally:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,6 +25,15 @@ def sim_cmd(tmp: Path, *extra: str) -> list[str]:
             "--params-file", str(tmp / "params.parm"), "--mavlink", "none",
             "--legacy-listen", str(free_udp_port()),
             "--legacy-dest", f"127.0.0.1:{free_udp_port()}", *extra]
+
+
+def fly_json(tmp: Path, *args: str) -> dict[str, Any]:
+    """A `--fast` flight with `args`; asserts a clean exit and returns its JSON summary."""
+    proc = subprocess.run(sim_cmd(tmp, "--fast", *args, "--json"),
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary: dict[str, Any] = json.loads(proc.stdout)
+    return summary
 
 
 def flight_dir(tmp: Path) -> Path:
@@ -45,11 +55,8 @@ def record_rate_hz(path: Path, index: int) -> float:
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     duration = 60
-    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", str(duration),
-                                  "--scenario", scenario, "--seed", "1", "--json"),
-                          capture_output=True, text=True, timeout=240)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    summary = json.loads(proc.stdout)
+    summary = fly_json(tmp_path, "--duration", str(duration), "--scenario", scenario,
+                       "--seed", "1")
     threads = {t["name"]: t for t in summary["threads"]}
     for name in ("imu", "gps", "servo"):
         assert threads[name]["restarts"] == 0, threads[name]
@@ -176,13 +183,10 @@ def test_runtime_killed_mid_write_leaves_readable_logs(tmp_path: Path) -> None:
 
 def test_injected_faults_are_survived_and_counted(tmp_path: Path) -> None:
     """Garbage, cut frames, bad checksums, a silent GPS and a servo port that vanishes."""
-    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", "30", "--scenario", "level",
-                                  "--fault", "imu:garbage=0.05,cut=0.02,badsum=0.02",
-                                  "--fault", "gps:silence=10-13,badsum=0.05",
-                                  "--vanish", "servo:15:2", "--json"),
-                          capture_output=True, text=True, timeout=240)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    summary = json.loads(proc.stdout)
+    summary = fly_json(tmp_path, "--duration", "30", "--scenario", "level",
+                       "--fault", "imu:garbage=0.05,cut=0.02,badsum=0.02",
+                       "--fault", "gps:silence=10-13,badsum=0.05",
+                       "--vanish", "servo:15:2")
     threads = {t["name"]: t for t in summary["threads"]}
     for name in ("imu", "gps", "servo", "estimator"):
         assert threads[name]["restarts"] == 0, threads[name]
@@ -202,14 +206,10 @@ def test_injected_faults_are_survived_and_counted(tmp_path: Path) -> None:
 def test_faults_injected_into_the_runtime_threads_are_survived(tmp_path: Path) -> None:
     """A crash, a Python loop that ignores its stop event and a block inside C, each in a real
     flight; and a thread that crashes at every step is left down while the others fly on."""
-    proc = subprocess.run(sim_cmd(tmp_path, "--fast", "--duration", "40", "--scenario", "level",
-                                  "--thread-fault", "estimator:raise:8",
-                                  "--thread-fault", "gps:pyloop:12",
-                                  "--thread-fault", "estimator:cblock:20",
-                                  "--thread-fault", "control:crash-loop:10", "--json"),
-                          capture_output=True, text=True, timeout=240)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    summary = json.loads(proc.stdout)
+    summary = fly_json(tmp_path, "--duration", "40", "--scenario", "level",
+                       "--thread-fault", "estimator:raise:8", "--thread-fault", "gps:pyloop:12",
+                       "--thread-fault", "estimator:cblock:20",
+                       "--thread-fault", "control:crash-loop:10")
     threads = {t["name"]: t for t in summary["threads"]}
     assert [f["kind"] for f in summary["thread_faults"]] == ["raise", "crash-loop", "pyloop",
                                                              "cblock"]

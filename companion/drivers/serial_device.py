@@ -23,7 +23,7 @@ from typing import Any
 import serial
 
 from companion.core.params import ParamSpec, int_param
-from companion.core.serialport import open_serial_port
+from companion.core.serialport import OPEN_ERRORS, open_serial_port
 from companion.watchdog.thread import ManagedThread, Task
 
 log = logging.getLogger(__name__)
@@ -128,8 +128,7 @@ class SerialDevice(ManagedThread):
             count += self.publish(item, t_ns)
         return count
 
-    # ---------------------------------------------------------------- port handling
-
+    # ---------------------------------------------------------------- replay hooks
     def drain_decoder(self, t_ns: int) -> list[object]:
         """What the decoder still holds at the end of a replay (a GPS epoch waiting for its
         last sentence); nothing for frame-by-frame devices."""
@@ -138,11 +137,13 @@ class SerialDevice(ManagedThread):
     def prepare_for_replay(self) -> None:
         """Called before a recorded capture is played into the port (`companion drivers
         replay`): a driver that pairs answers with its own requests relaxes that here."""
+
+    # ---------------------------------------------------------------- port handling
     def _open(self) -> bool:
         try:
             port = open_serial_port(self.url, self.baudrate,
                                     read_timeout_s=self.ctx.clock.to_host_s(self.read_timeout_s))
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except OPEN_ERRORS as exc:
             self.port_counters.open_failures += 1
             if self.port_counters.open_failures in (1, 10, 100) or self.port_counters.open_failures % 1000 == 0:
                 log.warning("%s: cannot open %s: %s", self.name, self.url, exc)

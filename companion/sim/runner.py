@@ -20,11 +20,7 @@ from companion.core.config import Config
 from companion.core.files import write_json_atomic
 from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
-from companion.sim.thread_faults import (
-    ThreadFaultInjector,
-    injector_factory,
-    parse_thread_fault,
-)
+from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
 from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
@@ -143,7 +139,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             faults = [parse_thread_fault(f) for f in sim.thread_faults]
 
             def inject(ctx: RuntimeContext, manager: ThreadManager) -> ThreadFaultInjector:
-                injectors.append(injector_factory(faults)(ctx, manager))
+                injectors.append(ThreadFaultInjector(ctx, manager, faults))
                 return injectors[-1]
 
             while True:

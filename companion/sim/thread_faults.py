@@ -27,7 +27,7 @@ from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KINDS", "ThreadFault", "ThreadFaultInjector", "injector_factory", "parse_thread_fault"]
+__all__ = ["KINDS", "ThreadFault", "ThreadFaultInjector", "parse_thread_fault"]
 
 KINDS = ("raise", "crash-loop", "pyloop", "cblock", "alloc")
 ALLOC_CHUNK = 1 << 20
@@ -117,10 +117,3 @@ class ThreadFaultInjector:
     def stats(self) -> list[dict[str, Any]]:
         return []
 
-
-def injector_factory(faults: list[ThreadFault]) -> Callable[[RuntimeContext, ThreadManager],
-                                                             ThreadFaultInjector]:
-    def make(ctx: RuntimeContext, manager: ThreadManager) -> ThreadFaultInjector:
-        return ThreadFaultInjector(ctx, manager, faults)
-
-    return make

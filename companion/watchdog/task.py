@@ -86,7 +86,7 @@ class Task:
 
     def replace(self, **changes: Any) -> Task:
         """This row with some fields changed (a second instance of a thread class, a test)."""
-        if "name" in changes and "param_prefix" not in changes and not changes.get("param_prefix"):
+        if "name" in changes and "param_prefix" not in changes:
             # a renamed row derives its prefix from the new name, unless one is given
             changes["param_prefix"] = ""
         return dataclasses.replace(self, **changes)
