@@ -170,7 +170,7 @@ class Runtime:
                 self.ctx, self.manager, endpoints=list(cfg.mavlink.endpoints),
                 key_file=cfg.mavlink.key_file or None,
                 allow_unsigned_reads=cfg.mavlink.allow_unsigned_reads,
-                identity=cfg.mavlink.identity, logging_control=self._logging_control,
+                logging_control=self._logging_control,
                 tlog=not dry))
         if self.opts.legacy and cfg.legacy.enabled:
             from legacy_protocol.adapter import LegacyAdapter

@@ -14,13 +14,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from companion.core.config import ConfigError
 from companion.core.params import ParamSpec
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import status
 from gcs_bridge.commands import CommandHandler, LoggingControl
 from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
-from gcs_bridge.dialect import Identity
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
@@ -49,7 +47,6 @@ class MavlinkBridge:
     `gcs_bridge.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
     given, writes must be signed on every link that does not say `signing=off`, and unsigned
     reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`) says so.
-    `identity`: "px4" (bytewise integer parameters, the default) or "ardupilot" (C cast).
     `logging_control(start) -> error or None`: starts/stops the runtime's logs on
     MAV_CMD_LOGGING_START/STOP (the tlogs follow those commands in any case).
     """
@@ -62,7 +59,6 @@ class MavlinkBridge:
         *,
         key_file: str | Path | None = None,
         allow_unsigned_reads: bool = True,
-        identity: Identity | str = Identity.PX4,
         logging_control: LoggingControl | None = None,
         tlog: bool = True,
     ) -> None:
@@ -70,17 +66,13 @@ class MavlinkBridge:
         if len(parsed) > MAX_LINKS:
             raise EndpointError(", ".join(e.text for e in parsed[MAX_LINKS:]),
                                 f"at most {MAX_LINKS} MAVLink endpoints")
-        try:
-            ident = identity if isinstance(identity, Identity) else Identity(str(identity).lower())
-        except ValueError:
-            raise ConfigError(f"MAVLink identity {identity!r}: use 'px4' or 'ardupilot'") from None
         key: bytes | None = None
         if key_file:
             key, _passphrase = read_key_file(Path(key_file))
         ctx.params.declare_all(BRIDGE_PARAMS)
         self.ctx = ctx
         self.manager = manager
-        self.core = BridgeCore(ctx, manager, ident)
+        self.core = BridgeCore(ctx, manager)
         self.params = ParamProtocol(self.core)
         self._tlog_recording = True
         self.commands = CommandHandler(self.core, logging_control=logging_control,
@@ -107,8 +99,8 @@ class MavlinkBridge:
             self.links.append(link)
             self.threads += [rx, tx]
             self._senders.append(tx)
-            log.info("MAVLink %s: signing %s%s", link.describe(),
-                     "on" if policy.signing else "off",
+            log.info("MAVLink %s: identity %s, signing %s%s", link.describe(),
+                     ep.identity.value, "on" if policy.signing else "off",
                      ", unsigned reads accepted" if policy.signing and unsigned_reads else "")
         self._first_unsaved = 0.0
         self._last_change = 0.0

@@ -1,4 +1,4 @@
-"""What every part of the bridge shares: the runtime, the vehicle's identity, time, parameters.
+"""What every part of the bridge shares: the runtime, the vehicle's ids, time, parameters.
 
 `BridgeCore` is read by the receive and send threads of every link; it holds no per-link
 state and nothing in it changes after construction except through the runtime's own
@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.watchdog import RuntimeContext, ThreadManager
-from gcs_bridge.dialect import COMPONENT_ID, Identity
+from gcs_bridge.dialect import COMPONENT_ID
 
 UINT16_MAX = 0xFFFF
 INT16_MAX = 0x7FFF
@@ -56,7 +56,6 @@ def nan_if_none(value: float | None) -> float:
 class BridgeCore:
     ctx: RuntimeContext
     manager: ThreadManager
-    identity: Identity = Identity.PX4
     compid: int = COMPONENT_ID
     boot_real_ns: int = 0
     boot_mono_ns: int = 0
@@ -70,10 +69,6 @@ class BridgeCore:
     @property
     def sysid(self) -> int:
         return int(self.ctx.vehicle_id)
-
-    @property
-    def bytewise(self) -> bool:
-        return self.identity.bytewise
 
     def now_real_ns(self) -> int:
         return self.ctx.clock.realtime_ns()

@@ -39,13 +39,17 @@ _PROTOCOL_VERSION_CRC_EXTRA = 217
 
 
 class Identity(enum.Enum):
-    """Which autopilot the HEARTBEAT claims to be, which fixes the integer parameter encoding.
+    """Which autopilot a link's HEARTBEAT claims, which fixes how clients encode integers.
 
-    PX4 (the default) makes MAVSDK, MAVProxy and spec-following clients all use the bytewise
-    encoding, exact for every int32. ARDUPILOT makes all of them use the C cast, exact only up
-    to 2**24. See docs/ground-stations.md.
+    GENERIC (the default) is the honest answer: QGroundControl loads its generic plugin (no
+    setup pages, no missing-parameter or firmware-version dialogs) and, like MAVSDK, sends
+    integers bytewise. MAVProxy reads integers bytewise only from a PX4 and as a plain float
+    otherwise, so a MAVProxy link says `identity=px4`; ARDUPILOT makes every client use the C
+    cast (exact only up to 2**24). Chosen per link (see docs/ground-stations.md); the bridge
+    never invents another firmware's parameters or version to go with a claim.
     """
 
+    GENERIC = "generic"
     PX4 = "px4"
     ARDUPILOT = "ardupilot"
 
@@ -53,11 +57,22 @@ class Identity(enum.Enum):
     def autopilot(self) -> int:
         if self is Identity.PX4:
             return int(mavlink.MAV_AUTOPILOT_PX4)
-        return int(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+        if self is Identity.ARDUPILOT:
+            return int(mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+        return int(mavlink.MAV_AUTOPILOT_GENERIC)
 
     @property
     def bytewise(self) -> bool:
-        return self is Identity.PX4
+        """Whether integer parameters travel bytewise (else by C cast) under this claim."""
+        return self is not Identity.ARDUPILOT
+
+    @classmethod
+    def parse(cls, text: str) -> Identity:
+        """An identity from its name; ValueError names the choices."""
+        try:
+            return cls(text.strip().lower())
+        except ValueError:
+            raise ValueError(f"identity {text!r}: use generic, px4 or ardupilot") from None
 
 
 class ProtocolVersionMessage(mavlink.MAVLink_message):

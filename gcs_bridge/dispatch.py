@@ -121,7 +121,8 @@ class Dispatcher:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         raw = param_codec.raw_value_of(msg)
-        outcome = self.params.apply_set(msg.param_id, raw, int(msg.param_type))
+        outcome = self.params.apply_set(msg.param_id, raw, int(msg.param_type),
+                                        bytewise=link.identity.bytewise)
         if outcome.ok:
             if not outcome.changed and outcome.index is not None:
                 link.post_param(outcome.index)  # a change is announced to every link instead

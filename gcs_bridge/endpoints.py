@@ -7,6 +7,8 @@ An endpoint is what `--mavlink` and `[mavlink] endpoints` take: a pymavlink conn
 
 - `signing=on|off`: with a key file, `off` exempts this link (a wired link on the bench);
 - `unsigned_reads=1|0`: with a key, accept unsigned messages that change nothing;
+- `identity=generic|px4|ardupilot`: the autopilot this link's HEARTBEAT claims (default
+  generic), which fixes how its clients encode integer parameters (MAVProxy needs `px4`);
 - `MESSAGE_NAME=hz`: start this link with that message at that rate (0 = off), e.g.
   `ATTITUDE=10&GPS_RAW_INT=2`, so a slow radio and a fast wired link can differ.
 
@@ -21,7 +23,7 @@ import os
 from dataclasses import dataclass, field
 
 from companion.core.config import ConfigError
-from gcs_bridge.dialect import message_id
+from gcs_bridge.dialect import Identity, message_id
 
 DEFAULT_ENDPOINT = "udpout:127.0.0.1:14550"
 DEFAULT_SERIAL_BAUD = 57600
@@ -54,6 +56,7 @@ class Endpoint:
     baud: int = DEFAULT_SERIAL_BAUD
     signing: bool | None = None  # None: on when the bridge has a key
     unsigned_reads: bool | None = None  # None: the bridge-wide default
+    identity: Identity = Identity.GENERIC
     rates_hz: dict[int, float] = field(default_factory=dict)  # message id -> Hz (0 = off)
 
     @property
@@ -108,11 +111,16 @@ def parse_endpoint(text: str) -> Endpoint:
                 settings["signing"] = _flag(text, key, value)
             elif lkey == "unsigned_reads":
                 settings["unsigned_reads"] = _flag(text, key, value)
+            elif lkey == "identity":
+                try:
+                    settings["identity"] = Identity.parse(value)
+                except ValueError as exc:
+                    raise EndpointError(text, f"setting {exc}") from None
             else:
                 msg_id = message_id(key.strip())
                 if msg_id is None:
                     raise EndpointError(
-                        text, f"unknown setting {key!r} (signing, unsigned_reads or a MAVLink "
+                        text, f"unknown setting {key!r} (signing, unsigned_reads, identity or a MAVLink "
                               "message name such as ATTITUDE)")
                 try:
                     hz = float(value)

@@ -77,6 +77,7 @@ class Link:
         self.events = events
         self.text_ids = text_ids
         self.transport = transport if transport is not None else make_transport(endpoint)
+        self.identity = endpoint.identity
         self.queue: MessageQueue[SenderItem] = MessageQueue(QUEUE_CAPACITY)
         self.counters = status.LinkCounters()
         self.scheduler = StreamScheduler(core)
@@ -151,7 +152,7 @@ class Link:
     def request_message(self, msg_id: int, target: tuple[int, int]) -> bool:
         """REQUEST_MESSAGE: post the message's production to the sender; False if unknown."""
         if msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            return self.post([status.autopilot_version(self.core)])
+            return self.post([status.autopilot_version(self.core, self.identity)])
         if msg_id == MSG_ID_PROTOCOL_VERSION:
             return self.post([status.protocol_version()])
         if stream_for(msg_id) is None:
@@ -313,7 +314,7 @@ class Link:
             item(self)
 
     def send_param(self, index: int) -> None:
-        msg = self.params.value_message(index)
+        msg = self.params.value_message(index, bytewise=self.identity.bytewise)
         if msg is not None:
             self.emit([msg])
 
@@ -332,8 +333,9 @@ class Link:
         else:  # a network: still in batches, so a busy client's socket buffer does not overflow
             pause_ns = PARAM_BATCH_PAUSE_NS
         end = min(count, self._param_cursor + burst)
+        bytewise = self.identity.bytewise
         msgs = [m for i in range(self._param_cursor, end)
-                if (m := self.params.value_message(i)) is not None]
+                if (m := self.params.value_message(i, bytewise=bytewise)) is not None]
         self.emit(msgs)
         self._param_cursor = end if end < count else None
         return pause_ns if self._param_cursor is not None else 1 << 62

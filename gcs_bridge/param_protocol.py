@@ -45,8 +45,11 @@ class ParamProtocol:
     def count(self) -> int:
         return len(self.registry)
 
-    def value_message(self, index: int) -> param_codec.ParamValueMessage | None:
-        """PARAM_VALUE with the current value of parameter `index`, None if out of range."""
+    def value_message(self, index: int, *, bytewise: bool) -> param_codec.ParamValueMessage | None:
+        """PARAM_VALUE with the current value of parameter `index`, None if out of range.
+
+        `bytewise` is the link's integer encoding (its identity's).
+        """
         try:
             name = self.registry.name_at(index)
             spec = self.registry.spec(name)
@@ -54,7 +57,7 @@ class ParamProtocol:
         except ParamError:
             return None
         return param_codec.param_value_message(spec, value, index, self.count(),
-                                               bytewise=self.core.bytewise)
+                                               bytewise=bytewise)
 
     def index_of(self, name: str) -> int | None:
         try:
@@ -68,7 +71,8 @@ class ParamProtocol:
             return self.index_of(param_id)
         return param_index if 0 <= param_index < self.count() else None
 
-    def apply_set(self, param_id: str, raw: bytes, mav_type: int) -> SetOutcome:
+    def apply_set(self, param_id: str, raw: bytes, mav_type: int, *,
+                  bytewise: bool) -> SetOutcome:
         """Validate and apply a PARAM_SET given its raw value bytes."""
         name = param_id.strip("\0").strip()
         index = self.index_of(name)
@@ -86,7 +90,7 @@ class ParamProtocol:
                        f"{spec.ptype.value} parameter",
                 error=PARAM_ERROR_TYPE_MISMATCH)
         try:
-            value = param_codec.decode(raw, mav_type, bytewise=self.core.bytewise)
+            value = param_codec.decode(raw, mav_type, bytewise=bytewise)
         except param_codec.WireValueError as exc:
             code = (PARAM_ERROR_TYPE_UNSUPPORTED if "not supported" in exc.reason
                     else PARAM_ERROR_TYPE_MISMATCH)

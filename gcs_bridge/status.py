@@ -95,17 +95,23 @@ def system_state(core: BridgeCore) -> int:
     return int(mavlink.MAV_STATE_STANDBY)
 
 
-def heartbeat(core: BridgeCore) -> Msg:
+def heartbeat(core: BridgeCore, identity: Identity = Identity.GENERIC) -> Msg:
+    """The link's HEARTBEAT: the mode is said in the base mode's flags, which every client
+    reads; a PX4 or ArduPilot claim adds that firmware's custom mode number for the same mode,
+    since their plugins name the mode from it."""
     auto = autonomous(core)
-    base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+    base = mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
     if auto:
         base |= mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
-    if core.identity is Identity.PX4:
+    custom = 0
+    if identity is Identity.PX4:
+        base |= mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         custom = _PX4_STABILIZED if auto else _PX4_MANUAL
-    else:
+    elif identity is Identity.ARDUPILOT:
+        base |= mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         custom = _APM_PLANE_STABILIZE if auto else _APM_PLANE_MANUAL
     return mavlink.MAVLink_heartbeat_message(
-        mavlink.MAV_TYPE_FIXED_WING, core.identity.autopilot, base, custom, system_state(core), 3)
+        mavlink.MAV_TYPE_FIXED_WING, identity.autopilot, base, custom, system_state(core), 3)
 
 
 def system_time(core: BridgeCore) -> Msg:
@@ -252,10 +258,10 @@ def _version_word() -> int:
         mavlink.FIRMWARE_VERSION_TYPE_DEV
 
 
-def autopilot_version(core: BridgeCore) -> Msg:
+def autopilot_version(core: BridgeCore, identity: Identity = Identity.GENERIC) -> Msg:
     caps = (mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
-    caps |= (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if core.bytewise
+            | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT | mavlink.MAV_PROTOCOL_CAPABILITY_FTP)
+    caps |= (mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if identity.bytewise
              else mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST)
     return mavlink.MAVLink_autopilot_version_message(
         caps, _version_word(), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, core.sysid, [0] * 18)

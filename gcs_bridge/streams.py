@@ -26,8 +26,8 @@ from gcs_bridge.core import (
     THREAD_SERVO,
     BridgeCore,
 )
+from gcs_bridge.dialect import Identity, mavlink
 from gcs_bridge.dialect import Message as Msg
-from gcs_bridge.dialect import mavlink
 
 FALLBACK_PERIOD_MS = 1000
 MIN_INTERVAL_US = 2000  # 500 Hz: faster requests are clamped
@@ -43,6 +43,7 @@ class LinkSide(Protocol):
 
     index: int
     counters: status.LinkCounters
+    identity: Identity
 
     def next_thread_status(self) -> Any: ...
 
@@ -84,8 +85,8 @@ def _fixed(ms: int | None) -> Callable[[BridgeCore], int | None]:
     return lambda core: ms
 
 
-def _b_heartbeat(core: BridgeCore, _v: Any, _l: LinkSide) -> list[Msg]:
-    return [status.heartbeat(core)]
+def _b_heartbeat(core: BridgeCore, _v: Any, link: LinkSide) -> list[Msg]:
+    return [status.heartbeat(core, link.identity)]
 
 
 def _b_sys_status(core: BridgeCore, _v: Any, link: LinkSide) -> list[Msg]:

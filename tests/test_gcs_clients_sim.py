@@ -349,7 +349,8 @@ def check_position_against_truth(fdir: Path, position: list[Any], velocity: list
 # ---------------------------------------------------------------------------- MAVProxy
 def test_mavproxy_fetches_and_sets_parameters_on_a_simulated_flight(tmp_path: Path) -> None:
     port = free_udp_port()
-    with sim_flight(tmp_path / "sim", f"udpout:127.0.0.1:{port}") as flight:
+    # MAVProxy reads integer parameters bytewise only from a PX4: the link claims one
+    with sim_flight(tmp_path / "sim", f"udpout:127.0.0.1:{port}?identity=px4") as flight:
         mp_dir = tmp_path / "mavproxy"
         mp_dir.mkdir()
         mp = MavProxy(port, mp_dir)

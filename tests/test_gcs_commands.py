@@ -61,7 +61,7 @@ def test_identity_and_every_stream_at_its_threads_rate() -> None:
         hb = gcs.recv(2.0, "HEARTBEAT")
         assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 1)
         assert (hb.type, hb.autopilot, hb.mavlink_version) == (
-            mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_PX4, 3)
+            mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_GENERIC, 3)
         p = v.params
         for name, ms in [("IMU_MSG_MS", 100), ("GPS_MSG_MS", 200), ("SERVO_MSG_MS", 100),
                          ("EST_MSG_MS", 50), ("MGR_MSTAT_MS", 500), ("MGR_STATUS_MS", 250)]:

@@ -90,7 +90,8 @@ def words(line: str | None) -> list[str]:
 
 def test_fetch_show_and_set(tmp_path: Path) -> None:
     port = free_udp_port()
-    with SyntheticVehicle([f"udpout:127.0.0.1:{port}"], extra_params=EXTRA) as v:
+    # MAVProxy reads integers bytewise only from a PX4: the link claims one (docs/ground-stations.md)
+    with SyntheticVehicle([f"udpout:127.0.0.1:{port}?identity=px4"], extra_params=EXTRA) as v:
         mp = MavProxy(port, tmp_path)
         try:
             t0 = time.monotonic()
@@ -130,7 +131,8 @@ def test_signed_link_with_mavproxy(tmp_path: Path) -> None:
     port = free_udp_port()
     key_file = tmp_path / "mavlink.key"
     passphrase = new_key_file(key_file)
-    with SyntheticVehicle([f"udpout:127.0.0.1:{port}"], extra_params=EXTRA, key_file=key_file) as v:
+    with SyntheticVehicle([f"udpout:127.0.0.1:{port}?identity=px4"], extra_params=EXTRA,
+                          key_file=key_file) as v:
         mp = MavProxy(port, tmp_path)
         try:
             assert mp.wait_line("Received", 25.0) is not None, "\n".join(mp.lines)  # unsigned reads

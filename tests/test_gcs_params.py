@@ -32,11 +32,13 @@ EXTRA = [
 
 
 @contextmanager
-def running(tmp_path: Path | None = None, **kwargs: Any) -> Iterator[tuple[SyntheticVehicle, MiniGcs]]:
+def running(tmp_path: Path | None = None, identity: str = "generic",
+            **kwargs: Any) -> Iterator[tuple[SyntheticVehicle, MiniGcs]]:
     gcs = MiniGcs(listen_port=free_udp_port())
     params_file = tmp_path / "params.parm" if tmp_path is not None else None
     try:
-        with SyntheticVehicle([f"udpout:127.0.0.1:{gcs.port}"], extra_params=EXTRA,
+        with SyntheticVehicle([f"udpout:127.0.0.1:{gcs.port}?identity={identity}"],
+                              extra_params=EXTRA,
                               params_file=params_file, **kwargs) as v:
             assert gcs.recv(5.0, "HEARTBEAT") is not None
             yield v, gcs

@@ -19,11 +19,11 @@ from gcs_bridge.dialect import Identity, mavlink
 ORIGIN = (43.7, 10.4, 50.0)
 
 
-def make_core(*threads: ManagedThread, identity: Identity = Identity.PX4) -> BridgeCore:
+def make_core(*threads: ManagedThread) -> BridgeCore:
     ctx = RuntimeContext(clock=Clock(), params=ParamRegistry(), vehicle_id=7)
     ctx.params.declare_all(BRIDGE_PARAMS)
     manager = ThreadManager(ctx, list(threads))
-    return BridgeCore(ctx, manager, identity)
+    return BridgeCore(ctx, manager)
 
 
 def est(pos: tuple[float, float, float] = (0.0, 0.0, 0.0), yaw: float = 0.0,
@@ -157,15 +157,22 @@ class Idle(ManagedThread):
 def test_heartbeat_identity_and_boot_state() -> None:
     core = make_core(Idle("imu", thread_id=1))
     (hb,) = packs([status.heartbeat(core)])
+    # the default claim is the honest one: a generic autopilot, the mode in the base flags only
     assert (hb.type, hb.autopilot, hb.system_status) == (
-        mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_PX4, mavlink.MAV_STATE_BOOT)
-    assert hb.custom_mode == 1 << 16 and hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-    apm = make_core(identity=Identity.ARDUPILOT)
-    assert status.heartbeat(apm).autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
-    caps = status.autopilot_version(core).capabilities
-    assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-    assert not caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
-    assert status.autopilot_version(apm).capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+        mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_GENERIC, mavlink.MAV_STATE_BOOT)
+    assert hb.custom_mode == 0 and not hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+    (px4,) = packs([status.heartbeat(core, Identity.PX4)])
+    assert px4.autopilot == mavlink.MAV_AUTOPILOT_PX4 and px4.custom_mode == 1 << 16
+    assert px4.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert status.heartbeat(core, Identity.ARDUPILOT).autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    for identity in (Identity.GENERIC, Identity.PX4):
+        caps = status.autopilot_version(core, identity).capabilities
+        assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+        assert not caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+        assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_FTP
+    caps = status.autopilot_version(core, Identity.ARDUPILOT).capabilities
+    assert caps & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
 
 
 def test_sensor_bits_follow_the_threads() -> None:
@@ -196,6 +203,7 @@ class FakeLink:
     counters: status.LinkCounters = field(default_factory=status.LinkCounters)
     sent: list[tuple[int, str]] = field(default_factory=list)
     now_ns: int = 0
+    identity: Identity = Identity.GENERIC
 
     def next_thread_status(self) -> Any:
         return None

@@ -70,7 +70,6 @@ class MavlinkConfig:
     endpoints: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"])
     key_file: str = ""  # MAVLink 2 signing key ("companion keys new"); empty = no signing
     allow_unsigned_reads: bool = True
-    identity: str = "px4"  # "px4" (bytewise integer parameters) or "ardupilot" (C cast)
 
 
 @dataclass
@@ -121,10 +120,20 @@ def load_config(path: Path | None) -> Config:
     return cfg
 
 
+#: Settings that moved elsewhere: what a configuration still using them is told.
+MOVED = {
+    "mavlink.identity": "the identity is now chosen per link: add '?identity=generic|px4|"
+                        "ardupilot' to each endpoint, e.g. 'udpout:127.0.0.1:14550?identity=px4' "
+                        "(see docs/ground-stations.md)",
+}
+
+
 def _merge(obj: Any, data: dict[str, Any], where: str, prefix: str) -> None:
     fields = {f.name: f for f in dataclasses.fields(obj)}
     for key, value in data.items():
         dotted = f"{prefix}{key}"
+        if dotted in MOVED:
+            raise ConfigError(f"{where}: setting '{dotted}' was removed: {MOVED[dotted]}")
         if key not in fields:
             raise ConfigError(f"{where}: unknown setting '{dotted}' (known: {', '.join(fields)})")
         current = getattr(obj, key)
@@ -167,6 +176,8 @@ def apply_override(cfg: Config, assignment: str) -> None:
     if "=" not in assignment:
         raise ConfigError(f"--set {assignment!r}: expected section.key=value")
     dotted, value = assignment.split("=", 1)
+    if dotted.strip() in MOVED:
+        raise ConfigError(f"--set: setting '{dotted.strip()}' was removed: {MOVED[dotted.strip()]}")
     parts = dotted.strip().split(".")
     obj: Any = cfg
     for i, part in enumerate(parts):
@@ -205,7 +216,6 @@ file = "params.parm"
 endpoints = ["udpout:127.0.0.1:14550"]
 key_file = ""
 allow_unsigned_reads = true
-identity = "px4"
 
 [legacy]
 dest = "255.255.255.255:5501"
