@@ -33,6 +33,24 @@ BRIDGE_PARAMS: list[ParamSpec] = [
               "Below this remaining charge a battery is reported low and unhealthy."),
     int_param("MAV_PARAM_BURST", 20, 1, 500, "",
               "Parameters sent per sender cycle while answering a full parameter list."),
+    *[float_param(name, hz, 0.0, 200.0, "Hz",
+                  f"Default rate of {what} on every MAVLink link; 0 = off. A link's own "
+                  "setting (e.g. `?ATTITUDE=10`) or SET_MESSAGE_INTERVAL overrides it for that "
+                  "link; on a serial radio the schedule is fitted to MAV_RADIO_PCT of the line.")
+      for name, hz, what in [
+          ("MAV_ATT_HZ", 20.0, "ATTITUDE and ATTITUDE_QUATERNION (the HUD's attitude)"),
+          ("MAV_POS_HZ", 5.0, "GLOBAL_POSITION_INT and LOCAL_POSITION_NED (the map)"),
+          ("MAV_HUD_HZ", 5.0, "VFR_HUD"),
+          ("MAV_GPS_HZ", 2.0, "GPS_RAW_INT"),
+          ("MAV_STAT_HZ", 2.0, "SYS_STATUS, EXTENDED_SYS_STATE and BATTERY_STATUS"),
+          ("MAV_IMU_HZ", 10.0, "HIGHRES_IMU"),
+          ("MAV_RC_HZ", 4.0, "RC_CHANNELS and SERVO_OUTPUT_RAW"),
+      ]],
+    int_param("MAV_RADIO_PCT", 50, 5, 90, "%",
+              "Share of a serial link's byte rate (baud / 10) the default telemetry schedule "
+              "may use; faster streams are slowed until it fits, and the rest of the line is "
+              "left to answers, parameter lists and log downloads. Network links are not "
+              "limited."),
 ]
 
 

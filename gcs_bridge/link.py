@@ -80,7 +80,8 @@ class Link:
         self.identity = endpoint.identity
         self.queue: MessageQueue[SenderItem] = MessageQueue(QUEUE_CAPACITY)
         self.counters = status.LinkCounters()
-        self.scheduler = StreamScheduler(core)
+        self.scheduler = StreamScheduler(core, line_bytes_s=self.transport.bytes_per_s,
+                                         signed=policy.key is not None)
         self.tlog = TlogWriter(tlog_path) if tlog_path is not None else None
         self._tlog_enabled = tlog_enabled
         self._broadcast_text = broadcast_text

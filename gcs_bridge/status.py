@@ -155,6 +155,9 @@ def sensor_bits(core: BridgeCore) -> tuple[int, int, int]:
         enabled |= batt
         if servo is not None and _batteries_ok(core, servo):
             healthy |= batt
+    # No geofence exists: not present, not enabled, and nothing breached. MAVProxy's fence
+    # module reads a clear health bit as a breach (and says "fence breach" on connecting).
+    healthy |= mavlink.MAV_SYS_STATUS_GEOFENCE
     if core.ctx.logs is not None:
         present |= mavlink.MAV_SYS_STATUS_LOGGING
         enabled |= mavlink.MAV_SYS_STATUS_LOGGING

@@ -1,8 +1,13 @@
 """The telemetry streams: one table row per message, and the per-link scheduler that runs it.
 
-A stream's default period is the message period (`<PREFIX>_MSG_MS`) of the thread that
-produces its data, so the parameters that pace the legacy monitor pace MAVLink too;
-MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM override it for one link.
+A stream's default rate is what a ground station expects of an autopilot on a network link
+(attitude at 20 Hz for the HUD, the map at 5 Hz, GPS and health at 2 Hz), set by the `MAV_*_HZ`
+parameters so a user's choice persists. The thread-status named values keep the manager's
+`MGR_STATUS_MS`, and the thesis's per-thread message periods pace the legacy protocol only.
+A link's own settings, MAV_CMD_SET_MESSAGE_INTERVAL and REQUEST_DATA_STREAM override a default
+for that link. On a serial radio the default schedule is fitted to `MAV_RADIO_PCT` of the
+line's byte rate (`fit_to_line`): the fastest streams are slowed first, so a 57600 baud radio
+never queues more than it can send.
 
 Streams fed by a data slot are sent *with* the data: once a stream is due, it goes out as soon
 as its slot holds a sample newer than the last one sent, so a message leaves within about a
@@ -19,13 +24,7 @@ from typing import Any, Protocol
 
 from companion.core.sync import WaitableSlot
 from gcs_bridge import status, telemetry
-from gcs_bridge.core import (
-    THREAD_ESTIMATOR,
-    THREAD_GPS,
-    THREAD_IMU,
-    THREAD_SERVO,
-    BridgeCore,
-)
+from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import Identity, mavlink
 from gcs_bridge.dialect import Message as Msg
 
@@ -36,6 +35,8 @@ AWAIT_NS = 1_000_000  # longest wait on one waitable slot (queued answers wait a
 IDLE_NS = 100_000_000  # longest sleep, so the sender's watchdog always sees cycles
 PERIOD_REFRESH_NS = 100_000_000  # how soon a changed message period takes effect
 LATENCY_RING = 2048
+FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header and CRC
+SIGNATURE_BYTES = 13
 
 
 class LinkSide(Protocol):
@@ -58,6 +59,7 @@ class StreamSpec:
     default_ms: Callable[[BridgeCore], int | None]  # None or 0: off unless requested
     build: Builder
     groups: tuple[int, ...] = ()  # REQUEST_DATA_STREAM ids that include it
+    frames: int = 1  # messages one send emits (for the radio's byte budget)
 
     @property
     def name(self) -> str:
@@ -65,10 +67,14 @@ class StreamSpec:
         return str(cls.msgname) if cls is not None else str(self.msg_id)
 
 
-def _thread_period(thread_id: int) -> Callable[[BridgeCore], int | None]:
+def _rate_param(name: str) -> Callable[[BridgeCore], int | None]:
+    """A default period from a `MAV_*_HZ` parameter (None: off)."""
     def period(core: BridgeCore) -> int | None:
-        ms = core.thread_message_ms(thread_id)
-        return FALLBACK_PERIOD_MS if ms is None else ms
+        try:
+            hz = float(core.ctx.params.get(name))
+        except Exception:
+            return FALLBACK_PERIOD_MS
+        return max(1, round(1000.0 / hz)) if hz > 0 else None
     return period
 
 
@@ -110,6 +116,10 @@ def _b_scaled(core: BridgeCore, imu: Any, _l: LinkSide) -> list[Msg]:
     return telemetry.scaled_imu(core, imu, core.ctx.state.imu_slow.read())
 
 
+def _b_extended(core: BridgeCore, _v: Any, _l: LinkSide) -> list[Msg]:
+    return telemetry.extended_sys_state(core, core.ctx.state.estimator.read())
+
+
 def _b_vfr(core: BridgeCore, est: Any, _l: LinkSide) -> list[Msg]:
     control = core.ctx.state.control.read()
     return telemetry.vfr_hud(core, est, None if control is None else control.throttle)
@@ -122,38 +132,40 @@ def _wrap(fn: Callable[[BridgeCore, Any], list[Msg]]) -> Builder:
 DS = mavlink
 STREAMS: tuple[StreamSpec, ...] = (
     StreamSpec(mavlink.MAVLINK_MSG_ID_HEARTBEAT, None, _fixed(1000), _b_heartbeat),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_SYS_STATUS, None, _param_period("MGR_MSTAT_MS"),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SYS_STATUS, None, _rate_param("MAV_STAT_HZ"),
                _b_sys_status, (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, None, _rate_param("MAV_STAT_HZ"),
+               _b_extended, (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, None, _fixed(5000), _b_system_time,
                (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_NAMED_VALUE_INT, None, _param_period("MGR_STATUS_MS"),
-               _b_thread_status, (DS.MAV_DATA_STREAM_EXTRA3,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, "imu", _thread_period(THREAD_IMU), _b_highres,
+               _b_thread_status, (DS.MAV_DATA_STREAM_EXTRA3,), frames=5),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, "imu", _rate_param("MAV_IMU_HZ"), _b_highres,
                (DS.MAV_DATA_STREAM_RAW_SENSORS,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_SCALED_IMU, "imu", _fixed(None), _b_scaled),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, "gps", _thread_period(THREAD_GPS),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, "gps", _rate_param("MAV_GPS_HZ"),
                _wrap(telemetry.gps_raw_int), (DS.MAV_DATA_STREAM_RAW_SENSORS,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_ATTITUDE, "estimator", _thread_period(THREAD_ESTIMATOR),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_ATTITUDE, "estimator", _rate_param("MAV_ATT_HZ"),
                _wrap(telemetry.attitude), (DS.MAV_DATA_STREAM_EXTRA1,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, "estimator",
-               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.attitude_quaternion),
+               _rate_param("MAV_ATT_HZ"), _wrap(telemetry.attitude_quaternion),
                (DS.MAV_DATA_STREAM_EXTRA1,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, "estimator",
-               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.global_position_int),
+               _rate_param("MAV_POS_HZ"), _wrap(telemetry.global_position_int),
                (DS.MAV_DATA_STREAM_POSITION,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, "estimator",
-               _thread_period(THREAD_ESTIMATOR), _wrap(telemetry.local_position_ned),
+               _rate_param("MAV_POS_HZ"), _wrap(telemetry.local_position_ned),
                (DS.MAV_DATA_STREAM_POSITION,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_VFR_HUD, "estimator", _thread_period(THREAD_ESTIMATOR),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_VFR_HUD, "estimator", _rate_param("MAV_HUD_HZ"),
                _b_vfr, (DS.MAV_DATA_STREAM_EXTRA2,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_HOME_POSITION, None, _fixed(None),
                _wrap(telemetry.home_position)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_RC_CHANNELS, "servo", _thread_period(THREAD_SERVO),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_RC_CHANNELS, "servo", _rate_param("MAV_RC_HZ"),
                _wrap(telemetry.rc_channels), (DS.MAV_DATA_STREAM_RC_CHANNELS,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, "servo", _thread_period(THREAD_SERVO),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, "servo", _rate_param("MAV_RC_HZ"),
                _wrap(telemetry.servo_output_raw), (DS.MAV_DATA_STREAM_RC_CHANNELS,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, "servo", _thread_period(THREAD_SERVO),
-               _wrap(telemetry.battery_status), (DS.MAV_DATA_STREAM_EXTENDED_STATUS,)),
+    StreamSpec(mavlink.MAVLINK_MSG_ID_BATTERY_STATUS, "servo", _rate_param("MAV_STAT_HZ"),
+               _wrap(telemetry.battery_status), (DS.MAV_DATA_STREAM_EXTENDED_STATUS,), frames=2),
 )
 STREAMS_BY_ID: dict[int, StreamSpec] = {s.msg_id: s for s in STREAMS}
 # NAMED_VALUE_FLOAT travels with the thread status (and GPS DOPs): one interval for both
@@ -168,6 +180,45 @@ def streams_in_group(stream_id: int) -> list[StreamSpec]:
     if stream_id == mavlink.MAV_DATA_STREAM_ALL:
         return [s for s in STREAMS if s.groups]
     return [s for s in STREAMS if stream_id in s.groups]
+
+
+MIN_FITTED_HZ = 0.2  # a radio too slow for even this gets it anyway (and the user is told)
+
+
+def frame_bytes(spec: StreamSpec, signed: bool = False) -> int:
+    """Bytes on the wire for one send of a stream (an upper bound: MAVLink 2 trims zeros)."""
+    cls = mavlink.mavlink_map.get(spec.msg_id)
+    payload = int(cls.unpacker.size) if cls is not None else 64
+    return spec.frames * (payload + FRAME_OVERHEAD_BYTES + (SIGNATURE_BYTES if signed else 0))
+
+
+def fit_to_line(rates_hz: list[float], sizes: list[int], fixed: list[bool],
+                budget_bytes_s: float) -> list[float]:
+    """Rates whose load fits `budget_bytes_s`: one cap for all non-fixed streams.
+
+    Water-filling: streams slower than the cap keep their rate, faster ones are cut to it, so
+    health and GPS at 1-2 Hz survive on a slow radio while attitude gives way first. Fixed
+    streams (the heartbeat, a rate the user asked for) are never cut; the cap never goes
+    below MIN_FITTED_HZ.
+    """
+    load = sum(r * s for r, s in zip(rates_hz, sizes, strict=True))
+    if load <= budget_bytes_s:
+        return list(rates_hz)
+    remaining = budget_bytes_s - sum(r * s for r, s, f in zip(rates_hz, sizes, fixed, strict=True)
+                                      if f)
+    movable = sorted((r, s) for r, s, f in zip(rates_hz, sizes, fixed, strict=True)
+                     if not f and r > 0)
+    cap = MIN_FITTED_HZ
+    below = 0.0  # load of the streams slower than the cap being tried
+    for k, (rate, _size) in enumerate(movable):
+        above = sum(s for _r, s in movable[k:])
+        if below + rate * above > remaining:
+            cap = max(MIN_FITTED_HZ, (remaining - below) / above)
+            break
+        below += rate * _size
+    else:
+        return list(rates_hz)
+    return [r if f else min(r, cap) for r, f in zip(rates_hz, fixed, strict=True)]
 
 
 @dataclass
@@ -190,8 +241,11 @@ class StreamStats:
 class StreamScheduler:
     """Decides, for one link, which stream goes out when. Used by the link's sender only."""
 
-    def __init__(self, core: BridgeCore, specs: Iterable[StreamSpec] = STREAMS) -> None:
+    def __init__(self, core: BridgeCore, specs: Iterable[StreamSpec] = STREAMS, *,
+                 line_bytes_s: float | None = None, signed: bool = False) -> None:
         self.core = core
+        self.line_bytes_s = line_bytes_s  # a serial line's byte rate; None: a network
+        self.signed = signed
         self._states = [_StreamState(s) for s in specs]
         self._by_id = {st.spec.msg_id: st for st in self._states}
         self.latencies_us: list[int] = []  # sample arrival -> message built, recent
@@ -222,7 +276,10 @@ class StreamScheduler:
         spec = stream_for(msg_id)
         if spec is None:
             return 0
-        ms = self._period_ms(self._by_id[spec.msg_id])
+        st = self._by_id[spec.msg_id]
+        ms = self._period_ms(st)
+        if self._periods_ms and self._periods_at_ns:  # the schedule in force (radio: fitted)
+            ms = self._periods_ms[self._states.index(st)]
         return -1 if ms is None else int(ms * 1000)
 
     def _period_ms(self, st: _StreamState) -> float | None:
@@ -230,6 +287,20 @@ class StreamScheduler:
             return None if st.override_us < 0 else st.override_us / 1000.0
         ms = st.spec.default_ms(self.core)
         return float(ms) if ms else None
+
+    def _fitted(self, periods: list[float | None]) -> list[float | None]:
+        """The default schedule fitted to the radio's share (see `fit_to_line`)."""
+        try:
+            pct = float(self.core.ctx.params.get("MAV_RADIO_PCT"))
+        except Exception:
+            pct = 50.0
+        rates = [1000.0 / p if p else 0.0 for p in periods]
+        sizes = [frame_bytes(st.spec, self.signed) for st in self._states]
+        fixed = [st.override_us is not None or st.spec.msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT
+                 for st in self._states]
+        assert self.line_bytes_s is not None
+        fitted = fit_to_line(rates, sizes, fixed, self.line_bytes_s * pct / 100.0)
+        return [1000.0 / r if r > 0 else None for r in fitted]
 
     def stats(self) -> StreamStats:
         return StreamStats({s.spec.name: s.sent for s in self._states},
@@ -250,6 +321,8 @@ class StreamScheduler:
         if not self._periods_at_ns or now_ns - self._periods_at_ns >= PERIOD_REFRESH_NS:
             # periods come from parameters: re-read them a few times a second, not every wake-up
             periods = [self._period_ms(st) for st in self._states]
+            if self.line_bytes_s is not None:
+                periods = self._fitted(periods)
             for st, old, new in zip(self._states, self._periods_ms or periods, periods, strict=True):
                 if new is not None and new != old and st.next_due_ns:
                     # a shorter period applies now, not after the rest of the old one

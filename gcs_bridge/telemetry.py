@@ -107,6 +107,22 @@ def vfr_hud(core: BridgeCore, est: EstimatorState, throttle: float | None) -> li
                                             alt, -vd)]
 
 
+LANDED_SPEED_M_S = 5.0
+"""Ground speed above which a fixed wing is taken to be in the air: far below any aircraft's
+stall speed, far above a GPS/INS velocity's noise at rest. (No weight-on-wheels switch exists.)"""
+
+
+def extended_sys_state(core: BridgeCore, est: EstimatorState | None) -> list[Msg]:
+    """EXTENDED_SYS_STATE: QGroundControl takes the landed state from it (not from VFR_HUD)."""
+    if est is None or not est.aligned:
+        landed = mavlink.MAV_LANDED_STATE_UNDEFINED
+    else:
+        vn, ve, _vd = est.vel_ned_m_s
+        landed = (mavlink.MAV_LANDED_STATE_IN_AIR if math.hypot(vn, ve) > LANDED_SPEED_M_S
+                  else mavlink.MAV_LANDED_STATE_ON_GROUND)
+    return [mavlink.MAVLink_extended_sys_state_message(mavlink.MAV_VTOL_STATE_UNDEFINED, landed)]
+
+
 def home_of(core: BridgeCore) -> tuple[float, float, float] | None:
     """Home (lat, lon deg, alt MSL m): the estimator's NED origin, else the configured one."""
     est = core.ctx.state.estimator.read()

@@ -56,22 +56,33 @@ def rates(gcs: MiniGcs, duration_s: float) -> Counter[str]:
     return Counter(m.get_type() for m in gcs.collect(duration_s))
 
 
-def test_identity_and_every_stream_at_its_threads_rate() -> None:
+def test_identity_and_default_rates_a_ground_station_expects() -> None:
     with running(vehicle_id=7) as (v, gcs):
         hb = gcs.recv(2.0, "HEARTBEAT")
         assert (hb.get_srcSystem(), hb.get_srcComponent()) == (7, 1)
         assert (hb.type, hb.autopilot, hb.mavlink_version) == (
             mavlink.MAV_TYPE_FIXED_WING, mavlink.MAV_AUTOPILOT_GENERIC, 3)
+        # nothing requested: the defaults (MAV_*_HZ), not the threads' 1 s message periods
+        n = rates(gcs, 2.0)
+        expected = {"HEARTBEAT": 2, "ATTITUDE": 40, "ATTITUDE_QUATERNION": 40,
+                    "GLOBAL_POSITION_INT": 10, "LOCAL_POSITION_NED": 10, "VFR_HUD": 10,
+                    "HIGHRES_IMU": 20, "GPS_RAW_INT": 4, "RC_CHANNELS": 8,
+                    "SERVO_OUTPUT_RAW": 8, "BATTERY_STATUS": 8, "SYS_STATUS": 4,
+                    "EXTENDED_SYS_STATE": 4}
+        for name, count in expected.items():  # (BATTERY_STATUS: two batteries per send)
+            assert count * 0.75 - 1 <= n[name] <= count * 1.25 + 1, (name, n[name], count)
+        # the defaults are parameters (a user's choice persists); thread status keeps its own
         p = v.params
-        for name, ms in [("IMU_MSG_MS", 100), ("GPS_MSG_MS", 200), ("SERVO_MSG_MS", 100),
-                         ("EST_MSG_MS", 50), ("MGR_MSTAT_MS", 500), ("MGR_STATUS_MS", 250)]:
-            p.set(name, ms)
+        for name, hz in [("MAV_POS_HZ", 20.0), ("MAV_HUD_HZ", 20.0), ("MAV_GPS_HZ", 5.0),
+                         ("MAV_RC_HZ", 10.0), ("MAV_STAT_HZ", 20.0)]:
+            p.set(name, hz)
+        p.set("MGR_STATUS_MS", 250)
         gcs.collect(0.3)  # let the new periods take over
         n = rates(gcs, 2.0)
         expected = {"HEARTBEAT": 2, "ATTITUDE": 40, "ATTITUDE_QUATERNION": 40,
                     "GLOBAL_POSITION_INT": 40, "LOCAL_POSITION_NED": 40, "VFR_HUD": 40,
                     "HIGHRES_IMU": 20, "GPS_RAW_INT": 10, "RC_CHANNELS": 20,
-                    "SERVO_OUTPUT_RAW": 20, "BATTERY_STATUS": 40, "SYS_STATUS": 4}
+                    "SERVO_OUTPUT_RAW": 20, "BATTERY_STATUS": 80, "SYS_STATUS": 40}
         for name, count in expected.items():
             assert count * 0.75 - 1 <= n[name] <= count * 1.25 + 1, (name, n[name], count)
         assert n["SCALED_IMU"] == 0
@@ -102,7 +113,7 @@ def test_set_message_interval_and_request_data_stream() -> None:
         gcs.collect(0.2)
         assert rates(gcs, 1.2)["ATTITUDE"] == 0
         assert command(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, att, 0).result == 0
-        assert 1 <= rates(gcs, 1.2)["ATTITUDE"] <= 2  # back to the estimator's 1 s
+        assert 18 <= rates(gcs, 1.0)["ATTITUDE"] <= 24  # back to the default 20 Hz
         assert command(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                        mavlink.MAVLINK_MSG_ID_MISSION_ITEM, 1000).result == \
             mavlink.MAV_RESULT_UNSUPPORTED

@@ -121,6 +121,39 @@ def test_serial_link_over_a_pseudo_terminal() -> None:
         os.close(master)
 
 
+def test_a_57600_baud_radio_gets_a_schedule_it_can_carry() -> None:
+    """The default schedule on a serial link uses at most MAV_RADIO_PCT of baud / 10, measured
+    as the bytes really written (a pseudo-terminal does not pace like a radio, so the bridge
+    must not count on the line to slow it down), while attitude still moves the HUD."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    os.close(slave)
+    try:
+        with SyntheticVehicle([f"{path},57600"]):
+            parser = mavlink.MAVLink(None, 0, 0)
+            parser.robust_parsing = True
+            counts: dict[str, int] = {}
+            received = 0
+            t_end = time.monotonic() + 1.0  # let the start-up burst (first of each) pass
+            while time.monotonic() < t_end:
+                if select.select([master], [], [], 0.2)[0]:
+                    os.read(master, 65536)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 4.0:
+                if select.select([master], [], [], 0.2)[0]:
+                    data = os.read(master, 65536)
+                    received += len(data)
+                    for m in parser.parse_buffer(data) or []:
+                        counts[m.get_type()] = counts.get(m.get_type(), 0) + 1
+            elapsed = time.monotonic() - t0
+            share_bytes_s = 5760.0 * 0.50  # MAV_RADIO_PCT's default
+            assert received / elapsed <= share_bytes_s * 1.1, (received / elapsed, counts)
+            assert counts.get("ATTITUDE", 0) / elapsed >= 4.0, counts
+            assert counts.get("GPS_RAW_INT", 0) / elapsed >= 1.5, counts  # slow streams kept
+    finally:
+        os.close(master)
+
+
 def test_garbage_is_counted_and_never_stops_the_link() -> None:
     port = free_udp_port()
     with SyntheticVehicle([f"udpin:127.0.0.1:{port}"]) as v:

@@ -183,7 +183,10 @@ def test_sensor_bits_follow_the_threads() -> None:
     gyro = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
     batt = mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
     assert present & gps and not enabled & gps and enabled & gyro and present & batt
-    assert healthy == 0  # nothing has run yet
+    # nothing has run yet; only the absent geofence is "not breached" (MAVProxy reads a clear
+    # GEOFENCE health bit as a breach and says so on connecting)
+    assert healthy == mavlink.MAV_SYS_STATUS_GEOFENCE
+    assert not present & mavlink.MAV_SYS_STATUS_GEOFENCE
     assert not present & mavlink.MAV_SYS_STATUS_AHRS
 
 
@@ -221,7 +224,8 @@ def test_data_stream_waits_for_a_sample_newer_than_its_due_time() -> None:
     sched = streams.StreamScheduler(core, only([mavlink.MAVLINK_MSG_ID_ATTITUDE]))
     link = FakeLink()
     ms = 1_000_000
-    assert sched.service(0, link, link.emit) == streams.IDLE_NS  # no data ever: nothing due
+    # no data ever: nothing sent, looked at again one default (20 Hz) period later
+    assert sched.service(0, link, link.emit) == 50 * ms
     core.ctx.state.estimator.write(est())
     sched.set_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000, 0)  # 10 Hz
     sched.service(0, link, link.emit)
@@ -268,14 +272,23 @@ def test_intervals_override_disable_and_default() -> None:
     assert not sched.set_interval(mavlink.MAVLINK_MSG_ID_MISSION_ITEM, 1000, t)
 
 
-def test_stream_periods_come_from_the_source_threads() -> None:
-    core = make_core(Idle("estimator", thread_id=4, message_ms=250, param_prefix="EST"))
+def test_stream_defaults_are_a_ground_stations_rates_not_the_threads_periods() -> None:
+    core = make_core(Idle("estimator", thread_id=4, message_ms=1000, param_prefix="EST"))
     sched = streams.StreamScheduler(core)
-    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 250_000
-    core.ctx.params.set("EST_MSG_MS", 40)
+    # a HUD at 20 Hz although the estimator's (legacy) message period is 1 s
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 50_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION) == 50_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) == 200_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_VFR_HUD) == 200_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT) == 500_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SYS_STATUS) == 500_000
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE) == 500_000
+    core.ctx.params.set("EST_MSG_MS", 40)  # paces the legacy protocol only
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 50_000
+    core.ctx.params.set("MAV_POS_HZ", 25.0)  # the user's default, persisted like any parameter
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT) == 40_000
-    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT) == 1_000_000  # no GPS thread
-    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SYS_STATUS) == 2_000_000  # MGR_MSTAT_MS
+    core.ctx.params.set("MAV_IMU_HZ", 0.0)
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU) == -1
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_SCALED_IMU) == -1  # off by default
     assert sched.interval_us(mavlink.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT) == 1_000_000  # MGR_STATUS_MS
     groups = {s.msg_id for s in streams.streams_in_group(mavlink.MAV_DATA_STREAM_POSITION)}
@@ -285,15 +298,57 @@ def test_stream_periods_come_from_the_source_threads() -> None:
 
 def test_a_shorter_message_period_applies_at_once() -> None:
     core = make_core(Idle("estimator", thread_id=4, message_ms=1000, param_prefix="EST"))
+    core.ctx.params.set("MAV_ATT_HZ", 1.0)
     sched = streams.StreamScheduler(core, only([mavlink.MAVLINK_MSG_ID_ATTITUDE]))
     link = FakeLink()
     ms = 1_000_000
     core.ctx.state.estimator.write(est())
     sched.service(0, link, link.emit)
     assert len(link.sent) == 1
-    core.ctx.params.set("EST_MSG_MS", 100)
+    core.ctx.params.set("MAV_ATT_HZ", 10.0)
     sched.service(150 * ms, link, link.emit)  # periods re-read: next one due at 250 ms
     sched.service(250 * ms, link, link.emit)  # due: waits for the next sample
     core.ctx.state.estimator.write(est())
     sched.service(255 * ms, link, link.emit)
     assert len(link.sent) == 2  # not after the rest of the old 1 s period
+
+
+def _load_bytes_s(sched: streams.StreamScheduler) -> float:
+    return sum(streams.frame_bytes(spec) * 1e6 / sched.interval_us(spec.msg_id)
+               for spec in streams.STREAMS if sched.interval_us(spec.msg_id) > 0)
+
+
+@pytest.mark.parametrize("baud", [9600, 57600, 115200])
+def test_a_radios_default_schedule_fits_its_share_of_the_line(baud: int) -> None:
+    core = make_core()
+    link = FakeLink()
+    sched = streams.StreamScheduler(core, line_bytes_s=baud / 10.0)
+    network = streams.StreamScheduler(core)
+    sched.service(1, link, link.emit)
+    network.service(1, link, link.emit)
+    share = baud / 10.0 * core.ctx.params.get("MAV_RADIO_PCT") / 100.0
+    if baud >= 115200:  # the whole network schedule fits: nothing is cut
+        assert _load_bytes_s(network) <= share
+        assert all(sched.interval_us(s.msg_id) == network.interval_us(s.msg_id)
+                   for s in streams.STREAMS)
+        return
+    assert _load_bytes_s(network) > share  # the network schedule would not fit: it is fitted
+    assert _load_bytes_s(sched) <= share * 1.01 or baud == 9600
+    att = sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE)
+    assert att > network.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE)  # the fastest give way
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_HEARTBEAT) == 1_000_000  # never cut
+    if baud >= 57600:  # slow streams keep their rate while attitude is cut
+        assert sched.interval_us(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT) == 500_000
+        assert att <= 250_000  # still a usable HUD: at least 4 Hz
+    # a rate the user asked for is kept, and the rest is fitted around it
+    sched.set_interval(mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000, 2)
+    sched.service(200_000_002, link, link.emit)
+    assert sched.interval_us(mavlink.MAVLINK_MSG_ID_ATTITUDE) == 100_000
+
+
+def test_fit_to_line_cuts_the_fastest_first() -> None:
+    rates = streams.fit_to_line([20.0, 2.0, 1.0], [100, 100, 100], [False, False, True], 700.0)
+    assert rates[2] == 1.0 and rates[1] == 2.0 and rates[0] == pytest.approx(4.0)
+    assert streams.fit_to_line([1.0, 2.0], [10, 10], [False, False], 1e6) == [1.0, 2.0]
+    tiny = streams.fit_to_line([20.0, 2.0], [100, 100], [False, False], 1.0)
+    assert tiny == [streams.MIN_FITTED_HZ, streams.MIN_FITTED_HZ]
