@@ -46,6 +46,10 @@ BRIDGE_PARAMS: list[ParamSpec] = [
           ("MAV_IMU_HZ", 10.0, "HIGHRES_IMU"),
           ("MAV_RC_HZ", 4.0, "RC_CHANNELS and SERVO_OUTPUT_RAW"),
       ]],
+    int_param("MAV_BULK_KB_S", 400, 1, 100_000, "kB/s",
+              "Byte rate of log downloads and MAVLink FTP replies on a network link (1 kB = "
+              "1000 bytes), so a download never crowds out telemetry; on a serial radio they "
+              "get what the telemetry schedule leaves of the line instead."),
     int_param("MAV_RADIO_PCT", 50, 5, 90, "%",
               "Share of a serial link's byte rate (baud / 10) the default telemetry schedule "
               "may use; faster streams are slowed until it fits, and the rest of the line is "

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
+from gcs_bridge.bulk import BulkSender
 from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, RxMessage, mavlink
 from gcs_bridge.dialect import Message as Msg
@@ -48,6 +49,8 @@ REFUSAL_REPORT_S = 5.0  # at most one STATUSTEXT about refused messages per link
 PEER_MEMORY = 32
 TLOG_FLUSH_S = 1.0
 PARAM_BATCH_PAUSE_NS = 5_000_000  # between MAV_PARAM_BURST-sized batches of a list
+PEER_SILENCE_S = 5.0  # a transfer for a peer not heard from for this long is abandoned
+RADIO_BULK_SHARE = 0.8  # of what the telemetry schedule leaves of a serial line
 
 SenderItem = list[Msg] | Callable[["Link"], None]
 
@@ -103,6 +106,9 @@ class Link:
         self._param_cursor: int | None = None
         self._rotation = 0
         self._home_origin: tuple[float, float, float] | None = None
+        self.bulk = BulkSender(self._bulk_bytes_s)
+        self.heard: dict[tuple[int, int], float] = {}  # peer -> last message, monotonic s
+        self.signed_in = False  # whether the message being dispatched was signed and valid
         self._pack_errors = 0
         self._initial_rates_applied = False
 
@@ -242,6 +248,7 @@ class Link:
         if src == (self.core.sysid, self.core.compid):
             return  # our own frames echoed (loopback radios, broadcast UDP)
         self.counters.rx_frames += 1
+        self.signed_in = False
         if self._checker is not None:
             why = self._checker.check(frame) if frame[0] == 0xFD and frame[2] & 0x01 else "unsigned"
             if why is not None:
@@ -250,7 +257,28 @@ class Link:
                         and not is_write(msg.get_msgId(), command)):
                     self.refuse(msg, why)
                     return
+            else:
+                self.signed_in = True
+        self._note_heard(src)
         self.dispatcher.handle(self, msg)
+
+    def _note_heard(self, src: tuple[int, int]) -> None:
+        self.heard[src] = time.monotonic()
+        if len(self.heard) > 4 * PEER_MEMORY:  # a flood of forged sources: keep the recent
+            for key, _t in sorted(self.heard.items(), key=lambda kv: kv[1])[:2 * PEER_MEMORY]:
+                del self.heard[key]
+
+    def peer_alive(self, src: tuple[int, int]) -> bool:
+        """Whether `src` spoke within PEER_SILENCE_S (a download for a vanished client stops)."""
+        return time.monotonic() - self.heard.get(src, 0.0) < PEER_SILENCE_S
+
+    def _bulk_bytes_s(self) -> float:
+        """Byte rate for downloads: a network's parameter, or what a radio's schedule leaves."""
+        params = self.core.ctx.params
+        line = self.transport.bytes_per_s
+        if line is None:
+            return float(params.get("MAV_BULK_KB_S")) * 1000.0
+        return line * (1.0 - float(params.get("MAV_RADIO_PCT")) / 100.0) * RADIO_BULK_SHARE
 
     def refuse(self, msg: RxMessage, why: str) -> None:
         """Count a refused message and report it (rate-limited); it is never acted on."""
@@ -500,6 +528,8 @@ class LinkSender(ManagedThread):
         wait_ns = link.scheduler.service(now, link, link.emit)
         burst = int(self.ctx.params.get("MAV_PARAM_BURST"))
         wait_ns = min(wait_ns, link.param_list_step(burst))
+        # downloads are paced in host time: the network is real even in a --fast simulation
+        wait_ns = min(wait_ns, link.bulk.step(time.monotonic_ns(), link.emit))
         link.send_events()
         link.check_home()
         if now >= self._next_stats_ns:

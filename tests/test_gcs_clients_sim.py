@@ -251,12 +251,16 @@ def test_mavsdk_telemetry_and_parameters_on_a_simulated_flight(tmp_path: Path) -
             for name, value in floats.items():
                 assert value == to_float32(expected[name]), name
 
-            # set an integer with a visible effect: the estimator's message period, which is
-            # the default ATTITUDE period (1000 ms simulated, 5 Hz of host time at --fast)
+            # an integer (the estimator's message period, which paces the legacy protocol)
             assert ints["EST_MSG_MS"] == 1000
-            mark = len(rec.get("attitude"))
             param.set_param_int("EST_MSG_MS", 100)
             assert param.get_param_int("EST_MSG_MS") == 100
+            # a float with a visible effect: the HUD's attitude rate, 20 Hz of flight time by
+            # default (no rate was requested), now 10 Hz
+            assert floats["MAV_ATT_HZ"] == 20.0
+            mark = len(rec.get("attitude"))
+            param.set_param_float("MAV_ATT_HZ", 10.0)
+            assert param.get_param_float("MAV_ATT_HZ") == 10.0
             # and a float; then a refused value changes nothing
             assert floats["CTL_ROLL_MAX"] == 35.0
             param.set_param_float("CTL_ROLL_MAX", 30.5)
@@ -271,10 +275,11 @@ def test_mavsdk_telemetry_and_parameters_on_a_simulated_flight(tmp_path: Path) -
             stamps = [a.timestamp_us for a in rec.get("attitude")]
             before = np.diff(stamps[:mark])
             after = np.diff(stamps[mark + 5:])  # a few in flight while the set was answered
-            assert 950_000 <= np.median(before) <= 1_050_000, before
+            assert 47_500 <= np.median(before) <= 52_500, before
             assert 95_000 <= np.median(after) <= 105_000, after
             # and persists it (saved once the changes pause)
             assert wait_for(lambda: flight.saved_params().get("EST_MSG_MS") == 100
+                            and flight.saved_params().get("MAV_ATT_HZ") == 10.0
                             and flight.saved_params().get("CTL_ROLL_MAX") == 30.5, 10.0, 0.05), \
                 flight.saved_params()
         summary = flight.stop()
