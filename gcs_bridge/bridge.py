@@ -22,7 +22,9 @@ from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
+from gcs_bridge.metadata import ComponentMetadata
 from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.services import LinkServices
 from gcs_bridge.signing import LinkPolicy, read_key_file
 
 log = logging.getLogger(__name__)
@@ -61,6 +63,7 @@ class MavlinkBridge:
         allow_unsigned_reads: bool = True,
         logging_control: LoggingControl | None = None,
         tlog: bool = True,
+        flight_root: Path | None = None,
     ) -> None:
         parsed = [e if isinstance(e, Endpoint) else parse_endpoint(e) for e in endpoints]
         if len(parsed) > MAX_LINKS:
@@ -79,9 +82,16 @@ class MavlinkBridge:
                                        set_tlog_recording=self._set_tlog_recording)
         self.dispatcher = Dispatcher(self.core, self.params, self.commands)
         self.text_ids = status.StatusTextIds()
+        # parameter descriptions for QGC and MAVSDK, from the registry's metadata
+        self.metadata = ComponentMetadata(ctx.params.specs, self.core.compid)
         self.links: list[Link] = []
         self.threads: list[LinkReceiver | LinkSender] = []
         self._senders: list[LinkSender] = []
+        # flights are served from the directory holding this one (`companion run` and `sim`
+        # make one directory per flight under `[logs] dir`)
+        root = flight_root
+        if root is None and ctx.flight_dir is not None:
+            root = Path(ctx.flight_dir).parent
         for index, ep in enumerate(parsed):
             signing_on = key is not None and ep.signing is not False
             unsigned_reads = allow_unsigned_reads if ep.unsigned_reads is None else ep.unsigned_reads
@@ -92,6 +102,7 @@ class MavlinkBridge:
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,
                         broadcast_text=self.broadcast_text)
+            link.services = LinkServices(link, root, self._current_flight, self.metadata)
             rx = LinkReceiver(link)  # the manager hands out the ids
             tx = LinkSender(link)
             manager.add(rx)
@@ -141,6 +152,9 @@ class MavlinkBridge:
         except OSError as exc:
             log.error("could not save parameters: %s", exc)
 
+    def _current_flight(self) -> Path | None:
+        return None if self.ctx.flight_dir is None else Path(self.ctx.flight_dir)
+
     def _set_tlog_recording(self, on: bool) -> None:
         self._tlog_recording = on
         log.info("MAVLink tlogs %s", "recording" if on else "paused")
@@ -181,6 +195,8 @@ class MavlinkBridge:
             return
         self._closed = True
         self._unsubscribe()
+        for link in self.links:
+            link.services.close()
         try:
             self.manager.on_tick.remove(self._persist_params)
         except ValueError:

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from companion.core.state import HorizonMeasurement
-from gcs_bridge import ftp, param_codec, status
+from gcs_bridge import param_codec, status
 from gcs_bridge.commands import CommandHandler
 from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import Message, RxMessage, mavlink
@@ -21,6 +21,7 @@ from gcs_bridge.param_protocol import ParamProtocol
 
 if TYPE_CHECKING:
     from gcs_bridge.link import Link
+    from gcs_bridge.services import LinkServices
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,11 @@ class Dispatcher:
             m.MAVLINK_MSG_ID_PING: self._ping,
             m.MAVLINK_MSG_ID_TIMESYNC: self._timesync,
             m.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL: self._ftp,
+            m.MAVLINK_MSG_ID_LOG_REQUEST_LIST: self._log(lambda s: s.log_request_list),
+            m.MAVLINK_MSG_ID_LOG_REQUEST_DATA: self._log(lambda s: s.log_request_data),
+            m.MAVLINK_MSG_ID_LOG_REQUEST_END: self._log(lambda s: s.log_request_end),
+            m.MAVLINK_MSG_ID_LOG_ERASE: self._log(lambda s: s.log_erase),
+            m.MAVLINK_MSG_ID_SERIAL_CONTROL: self._serial_control,
             m.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: self._mission_request_list,
             m.MAVLINK_MSG_ID_MISSION_COUNT: self._mission_upload,
             m.MAVLINK_MSG_ID_SETUP_SIGNING: self._setup_signing,
@@ -161,9 +167,20 @@ class Dispatcher:
     def _ftp(self, link: Link, msg: RxMessage) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
-        answer = ftp.reply_to(msg)
-        if answer is not None:
-            link.post([answer])
+        link.services.ftp_request(msg)
+
+    def _log(self, pick: Callable[[LinkServices], Callable[[RxMessage], None]]
+             ) -> Callable[[Link, RxMessage], None]:
+        """A LOG_* handler: addressed to us, then the link's log service."""
+        def handle(link: Link, msg: RxMessage) -> None:
+            if self._for_us(msg.target_system, msg.target_component):
+                pick(link.services)(msg)
+        return handle
+
+    def _serial_control(self, link: Link, msg: RxMessage) -> None:
+        # SERIAL_CONTROL has no target fields in pymavlink 2.4.50's common dialect: a console
+        # message reaching this link is for this vehicle
+        link.services.serial_control(msg)
 
     def _mission_request_list(self, link: Link, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):

@@ -28,7 +28,12 @@ from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
 from gcs_bridge.bulk import BulkSender
 from gcs_bridge.core import BridgeCore
-from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, RxMessage, mavlink
+from gcs_bridge.dialect import (
+    MSG_ID_COMPONENT_METADATA,
+    MSG_ID_PROTOCOL_VERSION,
+    RxMessage,
+    mavlink,
+)
 from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.endpoints import Endpoint
 from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
@@ -39,6 +44,7 @@ from gcs_bridge.transport import Transport, make_transport
 if TYPE_CHECKING:
     from gcs_bridge.dispatch import Dispatcher
     from gcs_bridge.param_protocol import ParamProtocol
+    from gcs_bridge.services import LinkServices
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +115,7 @@ class Link:
         self.bulk = BulkSender(self._bulk_bytes_s)
         self.heard: dict[tuple[int, int], float] = {}  # peer -> last message, monotonic s
         self.signed_in = False  # whether the message being dispatched was signed and valid
+        self.services: LinkServices  # set by the bridge once the link exists
         self._pack_errors = 0
         self._initial_rates_applied = False
 
@@ -153,7 +160,8 @@ class Link:
     @staticmethod
     def can_provide(msg_id: int) -> bool:
         """Whether REQUEST_MESSAGE can be answered for this message id."""
-        return (msg_id in (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, MSG_ID_PROTOCOL_VERSION)
+        return (msg_id in (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION, MSG_ID_PROTOCOL_VERSION,
+                           MSG_ID_COMPONENT_METADATA)
                 or stream_for(msg_id) is not None)
 
     def request_message(self, msg_id: int, target: tuple[int, int]) -> bool:
@@ -162,6 +170,8 @@ class Link:
             return self.post([status.autopilot_version(self.core, self.identity)])
         if msg_id == MSG_ID_PROTOCOL_VERSION:
             return self.post([status.protocol_version()])
+        if msg_id == MSG_ID_COMPONENT_METADATA:
+            return self.post([self.services.metadata_message()])
         if stream_for(msg_id) is None:
             return False
         return self.post(lambda link: link.send_stream_now(msg_id))

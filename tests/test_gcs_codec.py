@@ -12,7 +12,7 @@ from pymavlink import mavutil
 from pymavlink.generator.mavcrc import x25crc
 
 from companion.core.params import float_param, int_param
-from gcs_bridge import ftp, param_codec
+from gcs_bridge import param_codec
 from gcs_bridge.dialect import (
     MSG_ID_PROTOCOL_VERSION,
     ProtocolVersionMessage,
@@ -280,22 +280,3 @@ def test_statustext_chunks() -> None:
     assert [p.chunk_seq for p in parts] == [0, 1, 2]
     exact = statustext(4, "y" * 100, ids)
     assert [len(p.text) for p in exact] == [50, 50, 0]
-
-
-def test_ftp_requests_are_refused_at_once() -> None:
-    def request(opcode: int, seq: int) -> mavlink.MAVLink_file_transfer_protocol_message:
-        body = ftp.HEADER.pack(seq, 0, opcode, 0, 0, 0, 0, 0).ljust(251, b"\0")
-        msg = mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(body))
-        return mavlink.MAVLink(None, 0, 0).parse_char(msg.pack(mavlink.MAVLink(None, 255, 190)))
-
-    nak = ftp.reply_to(request(ftp.OP_OPEN_FILE_RO, 41))
-    assert nak is not None
-    seq, _s, opcode, size, req, *_ = ftp.HEADER.unpack(bytes(nak.payload[:12]))
-    assert (seq, opcode, size, req) == (42, ftp.OP_NAK, 1, ftp.OP_OPEN_FILE_RO)
-    assert nak.payload[12] == mavlink.MAV_FTP_ERR_FILENOTFOUND
-    assert (nak.target_system, nak.target_component) == (255, 190)
-    ack = ftp.reply_to(request(ftp.OP_TERMINATE_SESSION, 7))
-    assert ack is not None and ftp.HEADER.unpack(bytes(ack.payload[:12]))[2] == ftp.OP_ACK
-    assert ftp.reply_to(request(ftp.OP_NAK, 1)) is None
-    unknown = ftp.reply_to(request(99, 1))
-    assert unknown is not None and unknown.payload[12] == mavlink.MAV_FTP_ERR_UNKNOWNCOMMAND

@@ -151,8 +151,10 @@ def test_information_requests() -> None:
         assert gcs.recv(2.0, "GPS_RAW_INT").fix_type == mavlink.GPS_FIX_TYPE_3D_FIX
         assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, 99_999).result == \
             mavlink.MAV_RESULT_UNSUPPORTED
-        assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, 397).result == \
-            mavlink.MAV_RESULT_UNSUPPORTED  # COMPONENT_METADATA, which QGC asks for
+        # COMPONENT_METADATA, which QGC and MAVSDK ask for: where to fetch the descriptions
+        assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, 397).result == 0
+        meta = gcs.recv(2.0, "COMPONENT_METADATA")
+        assert meta is not None and meta.uri.startswith("mftp://") and meta.file_crc != 0
         assert command(gcs, mavlink.MAV_CMD_DO_SET_SERVO, 1, 1500).result == mavlink.MAV_RESULT_UNSUPPORTED
         gcs.send(mavlink.MAVLink_ping_message(123456, 9, 0, 0))
         pong = gcs.recv(2.0, "PING")

@@ -2,6 +2,11 @@
 
 Registered by the main CLI through `add_commands`; every handler returns the exit code:
 0 success, 1 a file could not be read or is damaged (unless ``--salvage``), 2 usage errors.
+
+Every command also takes a flight archive (what a ground station downloads from the vehicle's
+log list, saved as ``.bin``, ``.ulg`` or anything: see `companion.logs.archive`) where it takes
+a log file or directory: the archive is unpacked once next to itself and the command works on
+the flight's logs.
 """
 
 from __future__ import annotations
@@ -15,17 +20,19 @@ from typing import Any
 
 import numpy as np
 
+from companion.logs.archive import ArchiveError, is_archive, unpack
 from companion.logs.convert import convert_file, csv_name, format_time, input_files
 from companion.logs.reader import LogFile, LogFormatError, read_log
 
-__all__ = ["add_commands", "main"]
+__all__ = ["add_commands", "flight_of_archive", "main"]
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``convert``, ``info`` and ``export`` to the sub-parsers of the main CLI's ``logs``."""
     c = sub.add_parser("convert", help="binary logs -> one CSV per format index")
     c.add_argument(
-        "paths", nargs="+", metavar="FILE_OR_DIR", help="log files or directories of *.bin"
+        "paths", nargs="+", metavar="FILE_OR_DIR",
+        help="log files, directories of *.bin, or downloaded flight archives",
     )
     c.add_argument(
         "-o", "--out-dir", type=Path, help="output directory (default: next to each input)"
@@ -34,22 +41,58 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("info", help="formats, record counts, time span, markers, damage")
-    i.add_argument("path", type=Path, metavar="FILE")
+    i.add_argument("path", type=Path, metavar="FILE",
+                   help="a log file, or a flight archive (every log in it)")
     i.add_argument("--salvage", action="store_true", help="read past damage and report it")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
 
     e = sub.add_parser("export", help="export to Parquet (one file per format) or one .npz")
-    e.add_argument("path", type=Path, metavar="FILE")
+    e.add_argument("path", type=Path, metavar="FILE",
+                   help="a log file, or a flight archive (every log in it)")
     e.add_argument("--to", choices=("parquet", "npz"), required=True)
     e.add_argument(
         "-o",
         "--out",
         type=Path,
-        help="npz: output file; parquet: output directory (default: next to FILE)",
+        help="npz: output file (a directory for an archive); parquet: output directory "
+        "(default: next to FILE, in the unpacked flight for an archive)",
     )
     e.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
     e.set_defaults(func=cmd_export)
+
+
+def flight_of_archive(path: Path) -> Path | None:
+    """The flight directory of the archive `path`, unpacked next to it unless it already is;
+    says where on stderr. None (after printing the error) when the archive is unusable."""
+    try:
+        done = unpack(path)
+    except ArchiveError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    except OSError as exc:
+        print(f"error: unpacking {path}: {exc.strerror or exc}", file=sys.stderr)
+        return None
+    verb = "already unpacked in" if done.reused else "unpacked into"
+    print(f"{path}: flight archive {verb} {done.flight_dir}", file=sys.stderr)
+    return done.flight_dir
+
+
+def _log_inputs(paths: list[Path]) -> tuple[list[Path], bool]:
+    """Log files named by `paths` (directories expanded), archives replaced by the logs of
+    their unpacked flight; and whether every archive could be unpacked."""
+    out: list[Path] = []
+    ok = True
+    for p in input_files(paths):
+        if not is_archive(p):
+            out.append(p)
+            continue
+        flight = flight_of_archive(p)
+        if flight is None:
+            ok = False
+        else:
+            out.extend(input_files([flight]))
+    return out, ok
 
 
 def _read(path: Path, salvage: bool) -> LogFile | None:
@@ -100,11 +143,12 @@ class _Progress:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    files = input_files(args.paths)
+    files, ok = _log_inputs([Path(p) for p in args.paths])
     if not files:
-        print("error: no .bin/.uavlog files found in the given directories", file=sys.stderr)
+        if ok:
+            print("error: no .bin/.uavlog files found in the given directories", file=sys.stderr)
         return 1
-    status = 0
+    status = 0 if ok else 1
     for path in files:
         lf = _read(path, args.salvage)
         if lf is None:
@@ -174,11 +218,36 @@ def _info_dict(lf: LogFile) -> dict[str, Any]:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    lf = _read(args.path, args.salvage)
+    if not is_archive(args.path):
+        return _info_one(args.path, args.salvage, args.json, None)
+    files, ok = _log_inputs([args.path])
+    if not ok:
+        return 1
+    if not files:
+        print(f"error: {args.path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
+        return 1
+    infos: list[dict[str, Any]] | None = [] if args.json else None
+    status = 0
+    for k, path in enumerate(files):
+        if k and infos is None:
+            print()
+        status |= _info_one(path, args.salvage, args.json, infos)
+    if infos is not None:
+        print(json.dumps(infos, indent=2))  # one list for the flight: one JSON document
+    return status
+
+
+def _info_one(path: Path, salvage: bool, as_json: bool,
+              collect: list[dict[str, Any]] | None) -> int:
+    """Describe one log; with `collect`, append the JSON dict to it instead of printing."""
+    lf = _read(path, salvage)
     if lf is None:
         return 1
     info = _info_dict(lf)
-    if args.json:
+    if collect is not None:
+        collect.append(info)
+        return 0
+    if as_json:
         print(json.dumps(info, indent=2))
         return 0
     print(
@@ -215,13 +284,37 @@ def _key(index: int, number: int) -> str:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    lf = _read(args.path, args.salvage)
+    if not is_archive(args.path):
+        return _export_one(args.path, args.to, args.out, args.salvage)
+    files, ok = _log_inputs([args.path])
+    if not ok:
+        return 1
+    if not files:
+        print(f"error: {args.path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
+        return 1
+    # several logs: -o names a directory for npz too (one <log>.npz in it per log)
+    npz_dir: Path | None = args.out if args.out is not None and args.to == "npz" else None
+    if npz_dir is not None:
+        try:
+            npz_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            print(f"error: export of {args.path}: {exc}", file=sys.stderr)
+            return 1
+    status = 0
+    for path in files:
+        out = npz_dir / f"{path.stem}.npz" if npz_dir is not None else args.out
+        status |= _export_one(path, args.to, out, args.salvage)
+    return status
+
+
+def _export_one(path: Path, to: str, out_arg: Path | None, salvage: bool) -> int:
+    lf = _read(path, salvage)
     if lf is None:
         return 1
-    stem = args.path.stem
+    stem = path.stem
     try:
-        if args.to == "npz":
-            out = args.out or args.path.with_suffix(".npz")
+        if to == "npz":
+            out = out_arg or path.with_suffix(".npz")
             arrays: dict[str, np.ndarray] = {}
             for s in lf.streams:
                 arrays[_key(s.index, s.number)] = s.data
@@ -236,7 +329,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        out_dir = args.out or args.path.parent
+        out_dir = out_arg or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
         for s in lf.streams:
             frame = s.to_pandas()
@@ -248,11 +341,11 @@ def cmd_export(args: argparse.Namespace) -> int:
                 {"index": s.index, "kind": s.kind, "format": s.format, "columns": list(s.columns)}
             ).encode()
             table = table.replace_schema_metadata(meta)
-            path = out_dir / csv_name(stem, s.index, s.number).replace(".csv", ".parquet")
-            pq.write_table(table, path)
-            print(path)
+            target = out_dir / csv_name(stem, s.index, s.number).replace(".csv", ".parquet")
+            pq.write_table(table, target)
+            print(target)
     except OSError as exc:
-        print(f"error: export of {args.path}: {exc}", file=sys.stderr)
+        print(f"error: export of {path}: {exc}", file=sys.stderr)
         return 1
     return 0
 

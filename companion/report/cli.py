@@ -3,6 +3,9 @@
 Registered by the main CLI on the ``logs`` sub-parsers through `add_commands`. Exit codes: 0 a
 report or replay was produced (possibly partial: what is missing is printed), 1 the flight
 directory or the output could not be used, 2 usage errors (argparse).
+
+FLIGHT_DIR may also be a flight archive downloaded from the vehicle (saved as ``.bin``, ``.ulg``
+or anything): it is unpacked once next to itself and the report is made of the unpacked flight.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ __all__ = ["add_commands", "cmd_report", "main"]
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Add ``report`` to the ``companion logs`` sub-parsers."""
     r = sub.add_parser("report", help="PNG figures and one self-contained HTML page of a flight")
-    r.add_argument("flight_dir", type=Path, metavar="FLIGHT_DIR")
+    r.add_argument("flight_dir", type=Path, metavar="FLIGHT_DIR",
+                   help="a flight directory, or a downloaded flight archive")
     r.add_argument("-o", "--out", type=Path, help="output directory (default: FLIGHT_DIR/report)")
     r.add_argument("--no-csv-size", action="store_true",
                    help="skip converting the logs to CSV to measure the CSV size")
@@ -27,10 +31,18 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from companion.logs.archive import is_archive
+    from companion.logs.cli import flight_of_archive
     from companion.report import generate_report
 
+    flight_dir: Path = args.flight_dir
+    if is_archive(flight_dir):
+        unpacked = flight_of_archive(flight_dir)
+        if unpacked is None:
+            return 1
+        flight_dir = unpacked
     try:
-        result = generate_report(args.flight_dir, args.out, measure_csv=not args.no_csv_size)
+        result = generate_report(flight_dir, args.out, measure_csv=not args.no_csv_size)
     except FileNotFoundError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
