@@ -77,9 +77,11 @@ class BulkSender:
         self.cancel(channel)
         self._channel(channel).pending.append((transfer, alive))
 
-    def queue(self, channel: str, transfer: Transfer, alive: Alive | None = None) -> None:
+    def queue(self, channel: str, transfer: Transfer, alive: Alive | None = None, *,
+              preempt: bool = True) -> None:
+        """Append `transfer`; with `preempt`, a transfer already under way is dropped first."""
         ch = self._channel(channel)
-        if ch.started and ch.pending:
+        if preempt and ch.started and ch.pending:
             self._drop_head(ch)
         ch.pending.append((transfer, alive))
 

@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 LOG_CHANNEL = "log"
 FTP_CHANNEL = "ftp"
+CONSOLE_CHANNEL = "console"
 NO_FLIGHTS = Path("/nonexistent-flight-root")  # FTP then serves only the metadata files
 
 
@@ -93,8 +94,9 @@ class LinkServices:
         """SERIAL_CONTROL to the shell device: the console (it can restart threads and set
         parameters, so the signing policy treats it as a write)."""
         replies = self.console.handle(msg)
-        if replies:
-            self.link.post(replies)
+        if replies:  # up to 32 KiB: paced like a download, every command's output in order
+            self.link.post(lambda link: link.bulk.queue(CONSOLE_CHANNEL, iter(replies),
+                                                        preempt=False))
 
     # ------------------------------------------------------------------ metadata
     def metadata_message(self) -> Msg:
