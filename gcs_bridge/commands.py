@@ -149,6 +149,14 @@ class CommandHandler:
             msg_id = cmd.p(1)
             if msg_id is None or msg_id < 0 or msg_id != int(msg_id):
                 return DENIED
+            if int(msg_id) == mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL:
+                # the newer form of GET_MESSAGE_INTERVAL (QGC's MAVLink Inspector uses it)
+                asked = cmd.p(2)
+                if asked is None or asked != int(asked) or not 0 <= asked <= 0xFFFF:
+                    return DENIED
+                link.post([ack(cmd, ACCEPTED), mavlink.MAVLink_message_interval_message(
+                    int(asked), link.interval_us(int(asked)))])
+                return None
             if not link.can_provide(int(msg_id)):
                 return UNSUPPORTED  # (QGC asks for component metadata this way, for instance)
             link.post([ack(cmd, ACCEPTED)])  # the protocol wants the ACK first

@@ -158,7 +158,9 @@ STREAMS: tuple[StreamSpec, ...] = (
                (DS.MAV_DATA_STREAM_POSITION,)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_VFR_HUD, "estimator", _rate_param("MAV_HUD_HZ"),
                _b_vfr, (DS.MAV_DATA_STREAM_EXTRA2,)),
-    StreamSpec(mavlink.MAVLINK_MSG_ID_HOME_POSITION, None, _fixed(None),
+    # also when it changes (see Link.check_home); repeated so a ground station that connects
+    # later gets it without asking (QGroundControl never asks)
+    StreamSpec(mavlink.MAVLINK_MSG_ID_HOME_POSITION, None, _fixed(5000),
                _wrap(telemetry.home_position)),
     StreamSpec(mavlink.MAVLINK_MSG_ID_RC_CHANNELS, "servo", _rate_param("MAV_RC_HZ"),
                _wrap(telemetry.rc_channels), (DS.MAV_DATA_STREAM_RC_CHANNELS,)),

@@ -151,6 +151,11 @@ def test_information_requests() -> None:
         assert gcs.recv(2.0, "GPS_RAW_INT").fix_type == mavlink.GPS_FIX_TYPE_3D_FIX
         assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, 99_999).result == \
             mavlink.MAV_RESULT_UNSUPPORTED
+        # MESSAGE_INTERVAL by REQUEST_MESSAGE (param2 = the message asked about), as QGC asks
+        assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_MESSAGE_INTERVAL,
+                       mavlink.MAVLINK_MSG_ID_ATTITUDE).result == 0
+        interval = gcs.recv(2.0, "MESSAGE_INTERVAL")
+        assert (interval.message_id, interval.interval_us) == (mavlink.MAVLINK_MSG_ID_ATTITUDE, 50_000)
         # COMPONENT_METADATA, which QGC and MAVSDK ask for: where to fetch the descriptions
         assert command(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, 397).result == 0
         meta = gcs.recv(2.0, "COMPONENT_METADATA")
