@@ -28,6 +28,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("sim", []),
     ("logs", []),
     ("mavlink", []),
+    ("gcs_transfer", []),
     ("estimation", ["--full"]),
     ("estimation_sitl", []),
     ("horizon", []),
