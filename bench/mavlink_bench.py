@@ -367,14 +367,21 @@ def thread_cpu_s() -> dict[int, float]:
 
 def bench_cpu(duration_s: float) -> list[str]:
     rows = []
-    for label, rates in [("default rates (every thread's MSG_MS = 1 s)", ""),
-                         ("GCS rates (ATTITUDE 50 Hz, position 10 Hz, IMU 20 Hz, GPS 5 Hz, "
-                          "RC/servo 10 Hz)", "?ATTITUDE=50&ATTITUDE_QUATERNION=50&"
-                          "GLOBAL_POSITION_INT=10&LOCAL_POSITION_NED=10&HIGHRES_IMU=20&"
-                          "GPS_RAW_INT=5&RC_CHANNELS=10&SERVO_OUTPUT_RAW=10&VFR_HUD=10")]:
+    one_hz = {name: 1.0 for name in ("MAV_ATT_HZ", "MAV_POS_HZ", "MAV_HUD_HZ", "MAV_GPS_HZ",
+                                     "MAV_STAT_HZ", "MAV_IMU_HZ", "MAV_RC_HZ")}
+    for label, rates, params in [
+            ("every stream at 1 Hz (the defaults before the ground-station rates)", "", one_hz),
+            ("default rates (ATTITUDE 20 Hz, position and HUD 5 Hz, IMU 10 Hz, RC 4 Hz, "
+             "GPS and status 2 Hz)", "", {}),
+            ("high GCS rates (ATTITUDE 50 Hz, position 10 Hz, IMU 20 Hz, GPS 5 Hz, "
+             "RC/servo 10 Hz)", "?ATTITUDE=50&ATTITUDE_QUATERNION=50&"
+             "GLOBAL_POSITION_INT=10&LOCAL_POSITION_NED=10&HIGHRES_IMU=20&"
+             "GPS_RAW_INT=5&RC_CHANNELS=10&SERVO_OUTPUT_RAW=10&VFR_HUD=10", {})]:
         port = free_port()
         gcs = MiniGcs(listen_port=port)
         with SyntheticVehicle([f"udpout:127.0.0.1:{port}{rates}"]) as v:
+            for name, value in params.items():
+                v.params.set(name, value)
             gcs.collect(1.0)
             ids = {t.name: t.native_id or 0 for t in v.bridge.threads if t.native_id}
             src_ids = [t.native_id or 0 for t in v.sources if t.native_id]
