@@ -212,12 +212,12 @@ def fit_to_line(rates_hz: list[float], sizes: list[int], fixed: list[bool],
                      if not f and r > 0)
     cap = MIN_FITTED_HZ
     below = 0.0  # load of the streams slower than the cap being tried
-    for k, (rate, _size) in enumerate(movable):
+    for k, (rate, size) in enumerate(movable):
         above = sum(s for _r, s in movable[k:])
         if below + rate * above > remaining:
             cap = max(MIN_FITTED_HZ, (remaining - below) / above)
             break
-        below += rate * _size
+        below += rate * size
     else:
         return list(rates_hz)
     return [r if f else min(r, cap) for r, f in zip(rates_hz, fixed, strict=True)]

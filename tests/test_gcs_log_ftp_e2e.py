@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import random
 import re
-import subprocess
-import sys
-import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -24,7 +21,7 @@ from typing import Any
 from conftest import free_udp_port, wait_for
 
 # the MAVProxy driver (commands on stdin, output collected line by line) is shared
-from test_gcs_mavproxy import MAVPROXY, MavProxy
+from test_gcs_mavproxy import MavProxy
 
 from companion.logs.archive import FlightArchive
 from gcs_bridge import ftp
@@ -69,15 +66,7 @@ class MavProxyWithLog(MavProxy):
     """The shared driver with MAVProxy's `log` module loaded at start as well."""
 
     def __init__(self, port: int, cwd: Path) -> None:
-        self.lines: list[str] = []
-        self._lock = threading.Lock()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-u", str(MAVPROXY), f"--master=udpin:127.0.0.1:{port}", "--no-state",
-             "--default-modules=param,ftp,cmdlong,signing,log", "--state-basedir", str(cwd)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            cwd=cwd)
-        self._reader = threading.Thread(target=self._read, name="mavproxy-out", daemon=True)
-        self._reader.start()
+        super().__init__(port, cwd, modules="param,ftp,cmdlong,signing,log")
 
     def since(self, mark: int) -> list[str]:
         with self._lock:

@@ -33,12 +33,13 @@ MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
 class MavProxy:
     """MAVProxy with commands on stdin and its output collected line by line."""
 
-    def __init__(self, port: int, cwd: Path) -> None:
+    def __init__(self, port: int, cwd: Path,
+                 modules: str = "param,ftp,cmdlong,signing") -> None:
         self.lines: list[str] = []
         self._lock = threading.Lock()
         self.proc = subprocess.Popen(
             [sys.executable, "-u", str(MAVPROXY), f"--master=udpin:127.0.0.1:{port}", "--no-state",
-             "--default-modules=param,ftp,cmdlong,signing", "--state-basedir", str(cwd)],
+             f"--default-modules={modules}", "--state-basedir", str(cwd)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             cwd=cwd)
         self._reader = threading.Thread(target=self._read, name="mavproxy-out", daemon=True)

@@ -20,12 +20,14 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port, quiet_mavsdk, wait_for
-from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.component_metadata.component_metadata import ComponentMetadata, MetadataType
 from mavsdk.plugins.ftp.ftp import FilesystemEntry, Ftp, FtpError, FtpResult
 from mavsdk.plugins.log_files.log_files import LogFiles, LogFilesResult
 from mavsdk.plugins.shell.shell import Device, Shell
 from mavsdk.plugins.telemetry.telemetry import Telemetry
+
+# the MAVSDK connection helper is shared with the synthetic-vehicle MAVSDK tests
+from test_gcs_mavsdk import mavsdk_on
 
 from companion.logs.archive import FlightArchive
 from companion.logs.cli import main as logs_main
@@ -79,18 +81,6 @@ def flights(tmp_path: Path) -> Flights:
     random_file.write_bytes(os.urandom(RANDOM_BYTES))
     _write_log(current, "imu", 10)  # the flight being recorded (a log server lists it too)
     return Flights(root, old, current, random_file, log_file)
-
-
-@contextmanager
-def mavsdk_on(port: int) -> Iterator[Any]:
-    sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
-    try:
-        sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
-        system = sdk.first_autopilot(5.0)
-        assert system is not None, "MAVSDK did not discover the vehicle"
-        yield system
-    finally:
-        sdk.destroy()
 
 
 @contextmanager
