@@ -303,3 +303,26 @@ def test_a_full_disk_turns_one_log_off_reports_it_and_the_driver_flies_on(
     assert imu["restarts"] == 0 and imu["cycles"] >= 150
     off = [s for s in seen if s[0] == "logging off"]
     assert off == [("logging off", "imu", "No space left on device (errno 28)")]
+
+
+def test_gps_copies_are_dropped_and_a_utc_jump_is_told_but_midnight_is_not() -> None:
+    from companion.drivers.gps import GpsDriver
+    from companion.drivers.gps_protocol import GpsSolution
+
+    gps = GpsDriver("loop://")
+    told: list[str] = []
+    gps._on_notice = told.append
+    t0_ns = 1_000_000_000_000
+
+    def epoch(utc_s: float, t_s: float) -> int:
+        sol = GpsSolution(utc=utc_s % 86400.0, lat_deg=47.0, lon_deg=8.0, alt_m=500.0, fix=1)
+        return gps.publish(sol, t0_ns + int(t_s * 1e9))
+
+    assert epoch(86399.8, 0.0) == 1
+    assert epoch(86399.8, 0.01) == 0  # a copy of the same epoch
+    assert epoch(86399.9, 0.1) == 1
+    assert epoch(86400.0, 0.2) == 1  # midnight: UTC wraps to 0, time goes on
+    assert gps.utc_jumps == 0 and gps.repeated == 1
+    assert epoch(86400.1 + 3600.0, 0.3) == 1  # the receiver's clock steps an hour
+    assert gps.utc_jumps == 1 and any("UTC jumped +3600.0 s" in t for t in told)
+    assert gps.counters()["repeated"] == 1 and gps.counters()["utc_jumps"] == 1

@@ -354,3 +354,49 @@ def test_sim_bytes_through_a_pseudo_terminal() -> None:
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_uart_at_the_right_rate_reads_the_bytes_unchanged() -> None:
+    from companion.sim.devices import uart_misread
+
+    data = bytes(range(256))
+    assert uart_misread(data, 1.0) == data
+    assert uart_misread(data, 1.02) == data  # 2 % is within a UART's tolerance
+
+
+@pytest.mark.parametrize("ratio", [0.5, 2.0, 8.0])
+def test_a_wrong_baud_rate_yields_bytes_that_never_frame(ratio: float) -> None:
+    """What a mismatched UART receives from a stream of good IMU frames: bytes keep coming
+    (the driver can tell a wrong rate from a silent device) and no frame decodes."""
+    from companion.sim.devices import uart_misread
+
+    frames = imu_stream(ImuSim(rng(5)), 300)
+    received = b"".join(uart_misread(f, ratio) for f in frames)
+    assert len(received) > 0.05 * sum(map(len, frames))
+    decoder = ImuDecoder()
+    out = decoder.feed(received, 0)
+    assert not [x for x in out if isinstance(x, ImuFast)]
+
+
+def test_a_flood_sends_every_chunk_n_times_only_inside_its_window() -> None:
+    inj = FaultInjector(FaultPlan(flood_s=((1.0, 2.0),), flood_factor=10), rng(2))
+    assert inj.apply(b"abc", 0.5) == b"abc"
+    assert inj.apply(b"abc", 1.5) == b"abc" * 10
+    assert inj.apply(b"abc", 2.0) == b"abc"
+    assert inj.counts.flooded == 9
+
+
+def test_device_fault_specs_parse_and_bad_ones_name_the_item() -> None:
+    from companion.sim.world import parse_fault, parse_vanish
+
+    dev, plan = parse_fault("gps:utcstep=30:-1,flood=5-8,floodx=3,wrongbaud=1-2,baudratio=0.5")
+    assert dev == "gps" and plan.utc_step_s == ((30.0, -1.0),) and plan.flood_factor == 3
+    assert plan.flood_s == ((5.0, 8.0),) and plan.wrong_baud_s == ((1.0, 2.0),)
+    assert parse_vanish("imu:3:1:renamed").renamed and not parse_vanish("imu:3:1").renamed
+    for bad, words in [("imu:utcstep=3:1", "unknown key 'utcstep'"),
+                       ("imu:flood=x-2", "'flood=x-2'"), ("imu:baudratio=1", "baud_ratio"),
+                       ("imu:floodx=1", "flood_factor")]:
+        with pytest.raises(ValueError, match=words):
+            parse_fault(bad)
+    with pytest.raises(ValueError, match="renamed"):
+        parse_vanish("imu:3:1:gone")

@@ -203,6 +203,34 @@ def test_injected_faults_are_survived_and_counted(tmp_path: Path) -> None:
     assert np.isfinite(est["roll_rad"]).all()
 
 
+def test_babbling_misconfigured_and_renamed_devices(tmp_path: Path) -> None:
+    """An IMU at twice the expected baud rate, then flooding copies; a GPS whose UTC jumps an
+    hour and that floods; a servo board whose port returns under another kernel name."""
+    summary = fly_json(tmp_path, "--duration", "30", "--scenario", "level",
+                       "--fault", "imu:wrongbaud=8-10,flood=14-16",
+                       "--fault", "gps:utcstep=12:3600,flood=18-20",
+                       "--vanish", "servo:22:1:renamed")
+    threads = {t["name"]: t for t in summary["threads"]}
+    for name in ("imu", "gps", "servo", "estimator", "control"):
+        assert threads[name]["restarts"] == 0, threads[name]
+    imu, gps, servo = (threads[n]["counters"] for n in ("imu", "gps", "servo"))
+    events = [(e["kind"], e["thread"], e["detail"]) for e in summary["events"]]
+    # wrong baud rate: bytes keep coming, nothing decodes, and the report says so
+    assert ("silent", "imu", "bytes arrive, none decode") in events, events
+    assert ("recovered", "imu", "data again") in events
+    # copies are dropped, counted and reported, not integrated as samples
+    faults = summary["simulator"]["faults"]
+    assert imu["repeated"] >= 0.9 * faults["imu"]["flooded"] > 0
+    assert gps["repeated"] >= 0.8 * faults["gps"]["flooded"] > 0
+    assert gps["utc_jumps"] == 1
+    notices = [d for k, t, d in events if k == "notice"]
+    assert any("receiver UTC jumped +3600.0 s" in d for d in notices), notices
+    assert any("repeated frames" in d for d in notices)
+    assert servo["reconnects"] >= 1 and ("recovered", "servo", "data again") in events
+    est = read_log(flight_dir(tmp_path) / "estimator.bin").data(1)
+    assert np.isfinite(est["roll_rad"]).all() and np.abs(est["roll_rad"]).max() < 1.0
+
+
 def test_faults_injected_into_the_runtime_threads_are_survived(tmp_path: Path) -> None:
     """A crash, a Python loop that ignores its stop event and a block inside C, each in a real
     flight; and a thread that crashes at every step is left down while the others fly on."""

@@ -470,3 +470,43 @@ def test_a_slow_restart_does_not_shorten_the_other_threads_windows() -> None:
     assert bad.interrupted >= 1
     assert [g.stalls for g in good] == [0, 0, 0, 0]
     assert [g.restarts for g in good] == [0, 0, 0, 0]
+
+
+class Babbler(ManagedThread):
+    """Device-paced thread whose input arrives (io_bytes grows) but never decodes, and which
+    reports a notice at every step."""
+
+    def __init__(self) -> None:
+        super().__init__("babbler", thread_id=1, watchdog_ms=50)
+        self.bytes_in = 0
+        self.decodes = True
+
+    def io_bytes(self) -> int:
+        return self.bytes_in
+
+    def step(self) -> int:
+        time.sleep(0.002)
+        self.bytes_in += 10
+        self.notice("copies dropped")
+        return 1 if self.decodes or self.cycles < 3 else 0
+
+
+def test_a_silent_device_with_bytes_arriving_is_reported_as_undecodable() -> None:
+    b = Babbler()
+    mgr = make_manager(b)
+    q = mgr.subscribe_events()
+    seen: list = []  # type: ignore[type-arg]
+    with RunInBackground(mgr):
+        assert wait_for(lambda: b.cycles > 3, 5.0)
+        b.decodes = False
+        assert wait_for(lambda: bool(seen.extend(q.drain()) or
+                                     any(e.kind is EventKind.SILENT for e in seen)), 5.0)
+        b.decodes = True
+        assert wait_for(lambda: bool(seen.extend(q.drain()) or
+                                     any(e.kind is EventKind.RECOVERED for e in seen)), 5.0)
+    silent = [e for e in seen if e.kind is EventKind.SILENT]
+    assert silent[0].detail == "bytes arrive, none decode"
+    # a notice at every step (hundreds of them) reaches the ground at most once per 5 s
+    notices = [e for e in seen if e.kind is EventKind.NOTICE]
+    assert len(notices) == 1 and b.notices > 50, (len(notices), b.notices)
+    assert b.restarts == 0

@@ -23,6 +23,8 @@ from companion.watchdog.task import Task
 FMT_SOLUTION = 1
 FMT_RAW = 2
 EXPECTED = ("GGA", "RMC", "VTG", "GSA", "GST")
+UTC_JUMP_S = 1.0
+"""More than any receiver latency jitter, less than a leap second's or a reset's step."""
 
 
 FIX_LAYOUT = RecordLayout.of(GpsFix)
@@ -51,6 +53,13 @@ class GpsDriver(SerialDevice):
     def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["gps"]) -> None:
         super().__init__(task, url=url, baudrate=baudrate, read_timeout_s=0.02)
         self.decoder = self._new_decoder(allow_no_checksum=False, idle_ms=20)
+        self._last_utc_s: float | None = None
+        self._utc_offset_s: float | None = None
+        self.repeated = 0
+        """Epochs with the UTC of the epoch before: a receiver sending copies, not fixes."""
+        self.utc_jumps = 0
+        """Times the receiver's UTC moved against the computer's clock by more than
+        UTC_JUMP_S between two epochs (a receiver reset, a leap second, a week rollover)."""
 
     @staticmethod
     def _new_decoder(*, allow_no_checksum: bool, idle_ms: int, pashr: bool = False) -> NmeaDecoder:
@@ -101,14 +110,34 @@ class GpsDriver(SerialDevice):
     def publish(self, item: object, t_ns: int) -> int:
         if not isinstance(item, GpsSolution):
             return 0
+        if item.utc is not None:
+            if item.utc == self._last_utc_s:
+                self.repeated += 1
+                self.notice("repeated epochs dropped (receiver sends copies)")
+                return 0
+            self._last_utc_s = item.utc
+            self._check_utc(item.utc, t_ns)
         fix = solution_to_fix(item, t_ns)
         self.ctx.state.gps.write(fix)
         if self.tlog is not None:
             self.tlog.log(FMT_SOLUTION, *FIX_LAYOUT.values(fix), t_ns=t_ns)
         return 1
 
+    def _check_utc(self, utc_s: float, t_ns: int) -> None:
+        """Nothing on board steers by the receiver's UTC (every timestamp is the computer's
+        clock), so a jump costs nothing but a confusing log: say so when it happens."""
+        offset = utc_s - t_ns / 1e9
+        previous, self._utc_offset_s = self._utc_offset_s, offset
+        if previous is None:
+            return
+        delta = (offset - previous + 43200.0) % 86400.0 - 43200.0  # across midnight
+        if abs(delta) > UTC_JUMP_S:
+            self.utc_jumps += 1
+            self.notice(f"receiver UTC jumped {delta:+.1f} s", key="utc")
+
     def counters(self) -> dict[str, int]:
         out = super().counters()
+        out.update(repeated=self.repeated, utc_jumps=self.utc_jumps)
         c = self.decoder.counters
         out.update({k: getattr(c, k) for k in (
             "sentences_good", "bad_checksum", "unknown", "too_long", "cut", "malformed", "late",

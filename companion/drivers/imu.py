@@ -24,6 +24,10 @@ class ImuDriver(SerialDevice):
     def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["imu"]) -> None:
         super().__init__(task, url=url, baudrate=baudrate)
         self.decoder = ImuDecoder()
+        self._last_fast: tuple[object, ...] | None = None
+        self.repeated = 0
+        """Fast frames identical to the one before (counter and every field): a device that
+        sends copies, not samples. Each would be a second sample at the same instant."""
 
     def define_logs(self, tlog: Any) -> None:
         tlog.define(FMT_FAST, "%hhu,%hhu,%.6f,%.6f,%.6f,%.5f,%.5f,%.5f",
@@ -36,9 +40,11 @@ class ImuDriver(SerialDevice):
 
     def on_port_opened(self) -> None:
         self.decoder.reset()
+        self._last_fast = None
 
     def recover(self) -> None:
         self.decoder.reset()
+        self._last_fast = None
 
     def decode(self, data: bytes | None, t_ns: int) -> Iterable[object]:
         return self.decoder.feed(data, t_ns) if data else ()
@@ -47,6 +53,12 @@ class ImuDriver(SerialDevice):
         state = self.ctx.state
         tlog = self.tlog
         if isinstance(item, ImuFast):
+            key = (item.counter, item.status, item.rates_rad_s, item.accel_m_s2, item.slow_word)
+            if key == self._last_fast:
+                self.repeated += 1
+                self.notice("repeated frames dropped (device sends copies)")
+                return 0
+            self._last_fast = key
             sample = ImuSample(t_ns, item.counter, item.rates_rad_s, item.accel_m_s2,
                                item.gyro_ok, item.accel_ok)
             state.imu.write(sample)
@@ -68,4 +80,5 @@ class ImuDriver(SerialDevice):
         out.update({k: getattr(self.decoder.counters, k) for k in
                     ("frames_good", "bad_checksum", "bad_field", "resyncs", "bytes_discarded",
                      "slow_good", "slow_dropped")})
+        out["repeated"] = self.repeated
         return out

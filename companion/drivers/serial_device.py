@@ -15,6 +15,7 @@ silent device rather than restarting the thread, because a restart cannot bring 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -152,7 +153,9 @@ class SerialDevice(ManagedThread):
             return False
         if self._ever_opened:
             self.port_counters.reconnects += 1
-            log.info("%s: reopened %s", self.name, self.url)
+            target = os.path.realpath(self.url) if os.path.islink(self.url) else ""
+            # a stable link (udev by-id) may now point at another kernel name: say which
+            log.info("%s: reopened %s%s", self.name, self.url, f" ({target})" if target else "")
         self._ever_opened = True
         self._backoff_s = REOPEN_MIN_S
         self.port = port
@@ -243,6 +246,9 @@ class SerialDevice(ManagedThread):
     # ---------------------------------------------------------------- for subclasses
     def on_port_opened(self) -> None:
         """Reset decoder state after a (re)open: half a frame from before is garbage now."""
+
+    def io_bytes(self) -> int:
+        return self.port_counters.bytes_in
 
     def counters(self) -> dict[str, int]:
         """All counters of this driver, for status and the replay summary."""

@@ -19,10 +19,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     from companion.sim.thread_faults import parse_thread_fault
+    from companion.sim.world import parse_fault, parse_vanish
 
-    for text in args.thread_fault:
+    checks = ([(parse_thread_fault, t) for t in args.thread_fault]
+              + [(parse_fault, t) for t in args.fault] + [(parse_vanish, t) for t in args.vanish])
+    for parse, text in checks:
         try:
-            parse_thread_fault(text)
+            parse(text)  # type: ignore[operator]
         except ValueError as exc:
             print(f"companion sim: {exc}", file=sys.stderr)
             return 2
@@ -113,9 +116,12 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--gps-latency", type=float, default=0.05, metavar="S")
     p.add_argument("--gps-ashtech", action="store_true", help="add $PASHR,POS sentences")
     p.add_argument("--fault", action="append", default=[], metavar="DEV:SPEC",
-                   help="inject faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,silence=30-32")
+                   help="inject device faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,"
+                   "silence=30-32; also flood=A-B (floodx=10 copies), wrongbaud=A-B "
+                   "(baudratio=2), gps:utcstep=AT:SECONDS (docs/sitl.md)")
     p.add_argument("--vanish", action="append", default=[], metavar="DEV:START:DURATION",
-                   help="make a device's port disappear and return")
+                   help="make a device's port disappear and return; DEV:START:DURATION:renamed "
+                   "returns it under another kernel name behind the same stable link")
     p.add_argument("--thread-fault", action="append", default=[], metavar="THREAD:KIND:AT_S",
                    help="inject a fault into a runtime thread at a flight time: KIND is raise, "
                    "crash-loop, pyloop, cblock or alloc (e.g. estimator:raise:20)")

@@ -48,6 +48,7 @@ __all__ = [
     "ImuSimConfig",
     "ServoBoardConfig",
     "ServoBoardSim",
+    "uart_misread",
 ]
 
 _WGS84_A_M = 6378137.0
@@ -380,12 +381,34 @@ class FaultPlan:
     bad_checksum_prob: float = 0.0
     """Chance that one byte of a chunk (past its first two, before a trailing CR/LF) is altered,
     so its checksum no longer matches."""
+    flood_s: tuple[tuple[float, float], ...] = ()
+    """Windows [start, end) of sim time during which every chunk is sent `flood_factor` times:
+    a babbling device, `flood_factor` times its byte rate, every copy valid."""
+    flood_factor: int = 10
+    wrong_baud_s: tuple[tuple[float, float], ...] = ()
+    """Windows [start, end) during which the device sends at `baud_ratio` times the baud rate
+    the computer's UART expects, so the computer receives what a mismatched UART makes of the
+    bytes (see :func:`uart_misread`)."""
+    baud_ratio: float = 2.0
+    utc_step_s: tuple[tuple[float, float], ...] = ()
+    """(at sim time, seconds) steps of the device's own clock: the GPS receiver's UTC jumps
+    (a receiver reset, a leap second, a week-number rollover) while its fixes stay right."""
 
     def __post_init__(self) -> None:
         for name in ("garbage_prob", "cut_prob", "bad_checksum_prob"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"FaultPlan.{name} must be within 0..1, got {value}")
+        if not 2 <= self.flood_factor <= 100:
+            raise ValueError(f"FaultPlan.flood_factor must be within 2..100, got {self.flood_factor}")
+        if not (0.05 <= self.baud_ratio <= 20.0) or abs(self.baud_ratio - 1.0) < 0.02:
+            raise ValueError(f"FaultPlan.baud_ratio must be within 0.05..20 and not 1, got "
+                             f"{self.baud_ratio}")
+        for what, windows in (("flood_s", self.flood_s), ("wrong_baud_s", self.wrong_baud_s)):
+            for start, end in windows:
+                if not start <= end:
+                    raise ValueError(f"FaultPlan.{what} window ({start}, {end}) ends before it "
+                                     "starts")
         low, high = self.garbage_len
         if not 1 <= low <= high <= 4096:
             raise ValueError(
@@ -408,6 +431,10 @@ class FaultCounts:
     garbage_bytes: int = 0
     cut: int = 0
     corrupted: int = 0
+    flooded: int = 0
+    """Extra copies sent (chunks times flood_factor - 1)."""
+    misread: int = 0
+    """Chunks sent at the wrong baud rate."""
 
 
 class FaultInjector:
@@ -442,4 +469,62 @@ class FaultInjector:
             data[0:0] = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
             counts.garbage_bursts += 1
             counts.garbage_bytes += size
+        if any(start <= t_s < end for start, end in plan.wrong_baud_s):
+            counts.misread += 1
+            data = bytearray(uart_misread(bytes(data), plan.baud_ratio))
+        if any(start <= t_s < end for start, end in plan.flood_s):
+            counts.flooded += plan.flood_factor - 1
+            return bytes(data) * plan.flood_factor
         return bytes(data)
+
+
+def uart_misread(data: bytes, ratio: float) -> bytes:
+    """What a UART receives when the sender runs at `ratio` times its baud rate (8N1 both).
+
+    The bytes go out back to back, with the line idle (high) before and after; the receiver
+    waits for a falling edge, samples the middle of its own bit times, and hands up each byte
+    whose stop bit reads high. A byte whose stop bit reads low is a framing error, which a Linux
+    tty without IGNPAR or PARMRK delivers as a NUL; the receiver then waits for the line to go
+    high again before it looks for the next start bit. A real receiver behaves this way, so the
+    garbage it produces (its length, its NULs, its accidental sync bytes) is what the driver
+    meets when a device is configured for the wrong rate.
+    """
+    if not data:
+        return b""
+    bits: list[int] = []
+    for byte in data:
+        bits.append(0)
+        bits.extend((byte >> i) & 1 for i in range(8))
+        bits.append(1)
+    n_tx = len(bits)
+    rx_bit = ratio  # one receiver bit time, in sender bit times
+
+    def level(t: float) -> int:
+        k = math.floor(t)
+        return bits[k] if 0 <= k < n_tx else 1
+
+    out = bytearray()
+    t = 0.0
+    step = min(rx_bit, 1.0) / 4.0  # edge search resolution, finer than either bit time
+    while t < n_tx:
+        # find the next falling edge (line low while it was high just before)
+        while t < n_tx and not (level(t) == 0 and level(t - step) == 1):
+            t += step
+        if t >= n_tx:
+            break
+        if level(t + 0.5 * rx_bit) != 0:  # a glitch, not a start bit
+            t += step
+            continue
+        value = 0
+        for i in range(8):
+            value |= level(t + (1.5 + i) * rx_bit) << i
+        stop_t = t + 9.5 * rx_bit
+        if level(stop_t) == 1:
+            out.append(value)
+            t = stop_t
+        else:
+            out.append(0)  # framing error
+            t = stop_t
+            while t < n_tx and level(t) == 0:  # wait for the line to go idle (high)
+                t += step
+    return bytes(out)

@@ -6,8 +6,9 @@ reads bytes, without knowing they come from a simulator. Both processes share on
 epoch and scale, so ground truth and the runtime's logs share a timeline, also faster than
 real time.
 
-Device paths are stable symlinks (`<device dir>/imu` ...) to the current pseudo-terminal, so a
-port can vanish and come back (a fault the drivers must survive) under the same name.
+Device paths are stable symlinks (`<device dir>/imu` ...) to the current pseudo-terminal, as
+udev's /dev/serial/by-id links are to a USB adapter's ttyUSBn: a port can vanish and come back
+(a fault the drivers must survive), also under another kernel name, and the stable name follows.
 """
 
 from __future__ import annotations
@@ -66,6 +67,9 @@ class Vanish:
     device: str
     start_s: float
     duration_s: float
+    renamed: bool = False
+    """Return under another kernel name (/dev/pts/N), as a USB adapter re-enumerated as
+    ttyUSB1 after ttyUSB0; the stable link follows it."""
     done: bool = False
     gone: bool = False
 
@@ -98,10 +102,18 @@ class Pty:
         self.master = -1
         self.slave = -1
         self.dropped_bytes = 0
+        self.name = ""
         self.open()
 
-    def open(self) -> None:
+    def open(self, avoid_name: str | None = None) -> None:
         master, slave = os.openpty()
+        held: list[int] = []
+        while avoid_name is not None and os.ttyname(slave) == avoid_name and len(held) < 8:
+            held += [master, slave]  # keep the old number taken until we have another one
+            master, slave = os.openpty()
+        for fd in held:
+            os.close(fd)
+        self.name = os.ttyname(slave)
         tty.setraw(slave)  # no echo, no line discipline: bytes pass unchanged
         os.set_blocking(master, False)
         self.master, self.slave = master, slave
@@ -110,7 +122,7 @@ class Pty:
             tmp.unlink()
         except FileNotFoundError:
             pass
-        tmp.symlink_to(os.ttyname(slave))
+        tmp.symlink_to(self.name)
         os.replace(tmp, self.link)
 
     def close(self) -> None:
@@ -225,8 +237,9 @@ class World:
                 self.ptys[v.device].close()
                 v.gone = True
             elif v.gone and self.t_s >= v.start_s + v.duration_s:
-                log.info("fault: %s port returns at %.2f s", v.device, self.t_s)
-                self.ptys[v.device].open()
+                pty = self.ptys[v.device]
+                pty.open(avoid_name=pty.name if v.renamed else None)
+                log.info("fault: %s port returns at %.2f s as %s", v.device, self.t_s, pty.name)
                 v.done = True
 
     # ------------------------------------------------------------------ main loop
@@ -305,7 +318,8 @@ class World:
                                (truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2))
         self.ptys["imu"].write(self._inject("imu", frame))
         if self.ticks % GPS_EVERY == 0:
-            epoch = self.gps.epoch(self.start_utc_s + self.t_s, truth.lat_deg, truth.lon_deg,
+            epoch = self.gps.epoch(self.start_utc_s + self.t_s + self._utc_step_s(),
+                                   truth.lat_deg, truth.lon_deg,
                                    truth.alt_m, truth.vn_m_s, truth.ve_m_s, truth.vd_m_s)
             self.gps_queue.append((self.t_s + self.opts.gps_latency_s, epoch))
         while self.gps_queue and self.gps_queue[0][0] <= self.t_s + 1e-9:
@@ -323,39 +337,71 @@ class World:
     def stop(self) -> None:
         self._stop.set()
 
+    def _utc_step_s(self) -> float:
+        plan = self.opts.faults.get("gps")
+        if plan is None:
+            return 0.0
+        return sum(delta for at, delta in plan.utc_step_s if self.t_s >= at)
+
 
 def parse_fault(text: str) -> tuple[str, FaultPlan]:
-    """`DEV:key=value,...` with keys garbage, cut, badsum (probabilities) and silence=START-END."""
+    """`DEV:key=value,...`: garbage, cut, badsum (probabilities); silence, flood, wrongbaud
+    (START-END windows, repeatable); floodx (copies per chunk, default 10); baudratio (the
+    device's baud rate over the expected one, default 2); utcstep=AT:SECONDS (GPS only)."""
     dev, _, spec = text.partition(":")
     if dev not in DEVICES:
         raise ValueError(f"--fault {text!r}: device must be one of {', '.join(DEVICES)}")
     kwargs: dict[str, Any] = {}
-    silences: list[tuple[float, float]] = []
+    windows: dict[str, list[tuple[float, float]]] = {"silence": [], "flood": [], "wrongbaud": []}
+    steps: list[tuple[float, float]] = []
     for item in filter(None, spec.split(",")):
         key, _, value = item.partition("=")
-        if key == "garbage":
-            kwargs["garbage_prob"] = float(value)
-        elif key == "cut":
-            kwargs["cut_prob"] = float(value)
-        elif key == "badsum":
-            kwargs["bad_checksum_prob"] = float(value)
-        elif key == "silence":
-            a, _, b = value.partition("-")
-            silences.append((float(a), float(b)))
-        else:
-            raise ValueError(f"--fault {text!r}: unknown key {key!r} (garbage, cut, badsum, silence)")
-    return dev, FaultPlan(silence_s=tuple(silences), **kwargs)
+        try:
+            _fault_item(dev, key, value, kwargs, windows, steps)
+        except ValueError as exc:
+            raise ValueError(f"--fault {text!r}: {item!r}: {exc}") from None
+    try:
+        return dev, FaultPlan(silence_s=tuple(windows["silence"]),
+                              flood_s=tuple(windows["flood"]),
+                              wrong_baud_s=tuple(windows["wrongbaud"]), utc_step_s=tuple(steps),
+                              **kwargs)
+    except ValueError as exc:
+        raise ValueError(f"--fault {text!r}: {exc}") from None
+
+
+def _fault_item(dev: str, key: str, value: str, kwargs: dict[str, Any],
+                windows: dict[str, list[tuple[float, float]]],
+                steps: list[tuple[float, float]]) -> None:
+    if key == "garbage":
+        kwargs["garbage_prob"] = float(value)
+    elif key == "cut":
+        kwargs["cut_prob"] = float(value)
+    elif key == "badsum":
+        kwargs["bad_checksum_prob"] = float(value)
+    elif key in ("silence", "flood", "wrongbaud"):
+        a, _, b = value.partition("-")
+        windows[key].append((float(a), float(b)))
+    elif key == "floodx":
+        kwargs["flood_factor"] = int(value)
+    elif key == "baudratio":
+        kwargs["baud_ratio"] = float(value)
+    elif key == "utcstep" and dev == "gps":
+        at, _, delta = value.partition(":")
+        steps.append((float(at), float(delta)))
+    else:
+        raise ValueError(f"unknown key {key!r} (garbage, cut, badsum, "
+                         "silence, flood, floodx, wrongbaud, baudratio, utcstep for gps)")
 
 
 def parse_vanish(text: str) -> Vanish:
-    """`DEV:START:DURATION` in sim seconds."""
+    """`DEV:START:DURATION[:renamed]` in sim seconds."""
     try:
-        dev, start, duration = text.split(":")
-        if dev not in DEVICES:
+        dev, start, duration, *rest = text.split(":")
+        if dev not in DEVICES or rest not in ([], ["renamed"]):
             raise ValueError
-        return Vanish(dev, float(start), float(duration))
+        return Vanish(dev, float(start), float(duration), renamed=bool(rest))
     except ValueError:
-        raise ValueError(f"--vanish {text!r}: expected DEV:START_S:DURATION_S") from None
+        raise ValueError(f"--vanish {text!r}: expected DEV:START_S:DURATION_S[:renamed]") from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,6 +23,7 @@ class EventKind(enum.Enum):
     ENABLED = "enabled"
     RESUMED = "resumed"  # the whole process was suspended (SIGSTOP, a VM pause): windows restart
     LOG_OFF = "logging off"  # a thread's log could not be written (disk full): the thread flies on
+    NOTICE = "notice"  # a thread saw something wrong in its input and coped (a device flooding)
 
 
 # MAVLink MAV_SEVERITY values, so bridges need no table of their own.
@@ -42,6 +43,7 @@ SEVERITY = {
     EventKind.ENABLED: 5,
     EventKind.RESUMED: 4,
     EventKind.LOG_OFF: 3,
+    EventKind.NOTICE: 4,
 }
 
 

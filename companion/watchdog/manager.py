@@ -20,6 +20,7 @@ parameters and rules; split over files it would be harder to read, not easier.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -112,6 +113,7 @@ class ThreadManager:
         self._next_check_ns: dict[str, int] = {}
         self._seen_cycles: dict[str, int] = {}
         self._seen_beats: dict[str, int] = {}
+        self._seen_bytes: dict[str, int] = {}
         self._silent: dict[str, bool] = {}
         self._armed: dict[str, bool] = {}  # the periodic section's first window has begun
         self._restart_times: dict[str, deque[float]] = {}
@@ -126,7 +128,8 @@ class ThreadManager:
 
     def _adopt(self, t: ManagedThread) -> None:
         self._assign_id(t)
-        t.attach(self.ctx, on_exit=self.wake)
+        t.attach(self.ctx, on_exit=self.wake, on_notice=functools.partial(
+            self._emit, EventKind.NOTICE, t.name))
         self.ctx.params.declare_all(t.param_specs())
         self._restart_times.setdefault(t.name, deque())
 
@@ -312,6 +315,7 @@ class ThreadManager:
             return False
         self._seen_cycles[t.name] = t.cycles
         self._seen_beats[t.name] = t.heartbeats
+        self._seen_bytes[t.name] = t.io_bytes()
         self._silent[t.name] = False
         self._armed[t.name] = False
         t.start_worker()
@@ -446,6 +450,7 @@ class ThreadManager:
                 self._armed[t.name] = True
                 self._seen_cycles[t.name] = cycles
                 self._seen_beats[t.name] = beats
+                self._seen_bytes[t.name] = t.io_bytes()
                 continue
             if cycles != self._seen_cycles.get(t.name):
                 t.alive_at_last_check = True
@@ -456,7 +461,12 @@ class ThreadManager:
                 t.alive_at_last_check = False
                 if not self._silent.get(t.name):
                     self._silent[t.name] = True
-                    self._emit(EventKind.SILENT, t.name, f"no data for {t.watchdog_ms} ms")
+                    if t.io_bytes() > self._seen_bytes.get(t.name, 0):
+                        # bytes come in but nothing decodes: a wrong baud rate or protocol,
+                        # not a device that went quiet (short enough for one STATUSTEXT)
+                        self._emit(EventKind.SILENT, t.name, "bytes arrive, none decode")
+                    else:
+                        self._emit(EventKind.SILENT, t.name, f"no data for {t.watchdog_ms} ms")
             else:
                 t.alive_at_last_check = False
                 t.stalls += 1
@@ -465,6 +475,7 @@ class ThreadManager:
                 continue
             self._seen_cycles[t.name] = cycles
             self._seen_beats[t.name] = beats
+            self._seen_bytes[t.name] = t.io_bytes()
 
     def _process_commands(self) -> None:
         while (cmd := self.commands.get_nowait()) is not None:

@@ -32,6 +32,7 @@ from companion.watchdog.task import RestartType, Task
 log = logging.getLogger(__name__)
 
 PERIOD_RING = 4096  # cycle-period samples kept per thread for jitter statistics
+NOTICE_INTERVAL_S = 5.0  # flight time between two NOTICE events of one thread
 
 __all__ = ["ManagedThread", "RestartType", "RuntimeContext", "Task", "ThreadInterrupted",
            "ThreadStatus"]
@@ -152,6 +153,10 @@ class ManagedThread:
         self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (host ns, cycles) samples
         self._rate_n = 0
         self.work_t0_ns = 0  # set by device-paced steps when data arrived (excludes the wait)
+        self.notices = 0
+        self._on_notice: Callable[[str], None] | None = None
+        self._notice_next_ns: dict[str, int] = {}
+        self._notices_held: dict[str, int] = {}
         self._exit_kind: str = ""  # "", "normal", "crash", "interrupted"
 
     # ---------------------------------------------------------------- hooks for implementers
@@ -274,6 +279,31 @@ class ManagedThread:
         """Thread-specific counters for the flight summary (a driver's bytes and errors)."""
         return {}
 
+    def io_bytes(self) -> int:
+        """Bytes received from outside so far: with no cycle in a window, bytes that still
+        arrive tell a wrong baud rate or protocol from a device that went quiet."""
+        return 0
+
+    def notice(self, detail: str, key: str = "") -> None:
+        """Report something wrong in this thread's input that it coped with (a device sending
+        copies, a receiver's clock jumping): a NOTICE event to the logs and ground stations.
+        At most one per NOTICE_INTERVAL_S of flight time per thread and `key` (the detail when
+        empty), so a device that misbehaves every frame cannot flood the radio nor hide a
+        different problem; the ones held back are counted and named in the next."""
+        self.notices += 1
+        key = key or detail
+        now_ns = self.ctx.clock.monotonic_ns()
+        if now_ns < self._notice_next_ns.get(key, 0):
+            self._notices_held[key] = self._notices_held.get(key, 0) + 1
+            return
+        if len(self._notice_next_ns) > 64:  # keys are a driver's few kinds; never grow
+            self._notice_next_ns.clear()
+        self._notice_next_ns[key] = now_ns + int(NOTICE_INTERVAL_S * 1e9)
+        held = self._notices_held.pop(key, 0)
+        sink = self._on_notice
+        if sink is not None:
+            sink(detail + (f" (+{held} held back)" if held else ""))
+
     def reset_statistics(self) -> None:
         self._step_total_ns = 0
         self._step_count = 0
@@ -284,10 +314,12 @@ class ManagedThread:
         self.overruns = 0
 
     # ---------------------------------------------------------------- the supervisor's handle
-    def attach(self, ctx: RuntimeContext, on_exit: Callable[[], None] | None = None) -> None:
+    def attach(self, ctx: RuntimeContext, on_exit: Callable[[], None] | None = None,
+               on_notice: Callable[[str], None] | None = None) -> None:
         """Join a runtime: its context, and whom to tell when a worker ends (the manager's
         wake-up, so an exit is handled at once rather than at the next watchdog tick)."""
         self.ctx = ctx
+        self._on_notice = on_notice
         self._on_exit = on_exit
 
     def open_log(self) -> None:
