@@ -55,9 +55,10 @@ class Flight:
     proc: subprocess.Popen[str] | None = None
     rss_mb: list[float] = field(default_factory=list)
     t_start: float = 0.0
+    speed: float = SCALE
 
     def start(self) -> None:
-        cmd = [sys.executable, "-m", "companion", "sim", "--fast", "--duration",
+        cmd = [sys.executable, "-m", "companion", "sim", "--speed", str(self.speed), "--duration",
                str(self.duration_s), "--mavlink", f"udpin:127.0.0.1:{self.mav_port}",
                "--legacy-listen", str(self.legacy_port), "--legacy-allow", "127.0.0.1/32",
                "--log-dir", str(self.root / "logs"), "--params-file",
@@ -184,9 +185,9 @@ def common(summary: dict[str, Any] | None, flight: Flight, code: int) -> dict[st
 
 def fly(duration_s: float, extra: list[str] | None = None,
         during: Callable[[Flight], dict[str, str]] | None = None,
-        finish_timeout_s: float | None = None) -> tuple[Flight, dict[str, Any] | None, int,
-                                                        dict[str, str]]:
-    flight = Flight(duration_s, list(extra or []))
+        finish_timeout_s: float | None = None, speed: float = SCALE,
+        ) -> tuple[Flight, dict[str, Any] | None, int, dict[str, str]]:
+    flight = Flight(duration_s, list(extra or []), speed=speed)
     flight.start()
     found: dict[str, str] = {}
     if not flight.wait_ready():
@@ -195,7 +196,7 @@ def fly(duration_s: float, extra: list[str] | None = None,
     if during is not None and not found:
         found.update(during(flight))
     assert flight.proc is not None
-    deadline = time.monotonic() + (finish_timeout_s or duration_s / SCALE + 60)
+    deadline = time.monotonic() + (finish_timeout_s or duration_s / speed + 60)
     while flight.proc.poll() is None and time.monotonic() < deadline:
         flight.sample_rss()
         time.sleep(0.5)
@@ -217,15 +218,23 @@ def row_device(d: float, dev: str, spec: str, label: str, gap: bool = False) -> 
         figs["driver counters"] = ", ".join(
             f"{k} {v}" for k, v in counters.items()
             if v and k in ("bad_checksum", "bad_field", "resyncs", "bytes_discarded", "cut",
-                           "malformed", "frames_good", "sentences_good", "epochs"))
+                           "malformed", "frames_good", "sentences_good", "epochs", "repeated",
+                           "utc_jumps", "missed_answers"))
+        injected = s.get("simulator", {}).get("faults", {}).get(dev, {})
+        figs["injected"] = ", ".join(f"{k} {v}" for k, v in injected.items()
+                                     if v and k != "chunks") or "-"
+        reports = [f"{e['kind']}: {e['detail']}" for e in s["events"]
+                   if e["thread"] == dev and e["kind"] in ("silent", "notice")]
+        figs["reported"] = "; ".join(dict.fromkeys(reports)) or "nothing"
         fd = f.flight_dir()
         if gap and fd is not None:
             figs["detected after"], figs["recovered after"] = gap_figures(fd, s, dev)
     return Row(f"{dev} {label}", f"--fault {dev}:{spec}", figs)
 
 
-def row_vanish(d: float, dev: str, start: float, dur: float) -> Row:
-    f, s, code, _ = fly(d, ["--vanish", f"{dev}:{start}:{dur}"])
+def row_vanish(d: float, dev: str, start: float, dur: float, renamed: bool = False) -> Row:
+    spec = f"{dev}:{start}:{dur}" + (":renamed" if renamed else "")
+    f, s, code, _ = fly(d, ["--vanish", spec])
     figs = common(s, f, code)
     if s is not None:
         c = thread_of(s, dev).get("counters", {})
@@ -233,7 +242,44 @@ def row_vanish(d: float, dev: str, start: float, dur: float) -> Row:
         fd = f.flight_dir()
         if fd is not None:
             figs["detected after"], figs["recovered after"] = gap_figures(fd, s, dev)
-    return Row(f"{dev} port vanishes {dur:g} s", f"--vanish {dev}:{start}:{dur}", figs)
+    what = ", returns under another kernel name" if renamed else ""
+    return Row(f"{dev} port vanishes {dur:g} s{what}", f"--vanish {spec}", figs)
+
+
+def row_clock_step(d: float) -> Row:
+    """The wall clock stepped an hour forward, then two back, in real time (scale 1, where the
+    runtime's timestamps once followed the wall clock): the logs' time must not jump."""
+    def during(f: Flight) -> dict[str, str]:
+        out = {}
+        for at in (d / 3 + 2, 2 * d / 3 + 2):
+            while time.monotonic() - f.t_start < at + 3 and f.proc and f.proc.poll() is None:
+                time.sleep(0.2)
+            t = param_read_s(f.mav_port, 5.0)
+            out[f"GCS at {at:.0f} s"] = f"answered in {t:.2f} s" if t else "no answer"
+        return out
+
+    steps = [f"{d / 3:g}:3600", f"{2 * d / 3:g}:-7200"]
+    f, s, code, found = fly(d, [a for st in steps for a in ("--clock-step", st)], during,
+                            speed=1.0)
+    figs = common(s, f, code)
+    figs.update(found)
+    fd = f.flight_dir()
+    if fd is not None:
+        worst = []
+        for p in sorted(fd.glob("*.bin")):
+            log = read_log(p, salvage=True)
+            for idx in log.indexes:
+                t = log.time_ns(idx)
+                if len(t) > 1:
+                    worst.append((float(np.diff(t).min()) / 1e6, float(np.diff(t).max()) / 1e6,
+                                  f"{p.stem}/{idx}"))
+        if worst:
+            small = min(worst)
+            figs["log time steps, smallest"] = f"{small[0]:.3f} ms ({small[2]})"
+            big = max(worst, key=lambda w: w[1])
+            figs["log time steps, largest"] = f"{big[1]:.0f} ms ({big[2]})"
+    return Row("wall clock stepped +1 h, then -2 h", " ".join(f"--clock-step {x}" for x in steps)
+               + " (real time)", figs)
 
 
 def row_thread(d: float, thread: str, kind: str, at_s: float, label: str) -> Row:

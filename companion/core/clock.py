@@ -38,9 +38,15 @@ class Clock:
         return self.monotonic_ns() / 1e9
 
     def realtime_ns(self) -> int:
-        """Scaled CLOCK_REALTIME in ns: what log records and datagrams carry."""
-        if self.scale == 1.0:
-            return time.time_ns()
+        """Wall time in ns as it was at the epoch plus the (scaled) monotonic time since: what
+        log records and datagrams carry.
+
+        Never read from the wall clock after the epoch, also in flight: an aircraft computer
+        without a real-time clock boots with a stale time and NTP or GPS time steps it later,
+        often in flight, and a step (an hour forward, or backwards) in the records would break
+        every time difference taken across it (rates, latencies, the log's order). The receiver's
+        UTC is logged with every GPS fix, to align a flight with true time afterwards.
+        """
         return self._real0 + int((time.monotonic_ns() - self._mono0) * self.scale)
 
     def to_host_s(self, duration_s: float) -> float:

@@ -18,11 +18,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"companion sim: unknown scenario {args.scenario!r} ({', '.join(SCENARIOS)})",
               file=sys.stderr)
         return 2
+    from companion.sim.clock_faults import parse_clock_step
     from companion.sim.thread_faults import parse_thread_fault
     from companion.sim.world import parse_fault, parse_vanish
 
     checks = ([(parse_thread_fault, t) for t in args.thread_fault]
-              + [(parse_fault, t) for t in args.fault] + [(parse_vanish, t) for t in args.vanish])
+              + [(parse_fault, t) for t in args.fault] + [(parse_vanish, t) for t in args.vanish]
+              + [(parse_clock_step, t) for t in args.clock_step])
     for parse, text in checks:
         try:
             parse(text)  # type: ignore[operator]
@@ -45,7 +47,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
                      gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
                      faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
-                     auto_switch_s=args.auto_switch,
+                     auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
                      no_noise=args.no_noise)
 
     def live(rt: object) -> None:
@@ -125,6 +127,9 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--thread-fault", action="append", default=[], metavar="THREAD:KIND:AT_S",
                    help="inject a fault into a runtime thread at a flight time: KIND is raise, "
                    "crash-loop, pyloop, cblock or alloc (e.g. estimator:raise:20)")
+    p.add_argument("--clock-step", action="append", default=[], metavar="AT_S:STEP_S",
+                   help="step the runtime process's wall clock by STEP_S s at flight time AT_S "
+                   "(as NTP or GPS time does in flight), e.g. 20:3600")
     p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
                    help="auto scenario: when the pilot engages automatic mode")
     p.add_argument("--no-noise", action="store_true", help="perfect IMU (no noise or bias)")

@@ -20,6 +20,7 @@ from companion.core.config import Config
 from companion.core.files import write_json_atomic
 from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+from companion.sim.clock_faults import WallClockSteps, parse_clock_step
 from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
 from companion.watchdog import RuntimeContext, ThreadManager
 
@@ -48,6 +49,8 @@ class SimOptions:
     """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.thread_faults)."""
     auto_switch_s: float = 20.0
     no_noise: bool = False
+    clock_steps: list[str] = field(default_factory=list)
+    """`AT_S:STEP_S` wall-clock steps in the runtime's process (companion.sim.clock_faults)."""
 
 
 class WorldProcess:
@@ -137,6 +140,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             first = True
             injectors: list[ThreadFaultInjector] = []
             faults = [parse_thread_fault(f) for f in sim.thread_faults]
+            steps = WallClockSteps([parse_clock_step(c) for c in sim.clock_steps], clock)
 
             def inject(ctx: RuntimeContext, manager: ThreadManager) -> ThreadFaultInjector:
                 injectors.append(ThreadFaultInjector(ctx, manager, faults))
@@ -151,6 +155,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                     rt.ctx.params.set("GPS_PASHR", 1)
                 if on_runtime is not None:
                     on_runtime(rt)
+                if steps.pending:
+                    rt.manager.on_tick.append(steps.tick)
                 rt.start()
                 if first:
                     world.go()
@@ -166,11 +172,14 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                 log.warning("reboot requested: restarting the runtime")
             host_s = time.monotonic() - t0
         finally:
+            steps.restore()
             stats = world.stop()
     summary = rt.summary()
     summary["simulator"] = stats
     if injectors:
         summary["thread_faults"] = [a for inj in injectors for a in inj.armed]
+    if steps.applied:
+        summary["clock_steps"] = steps.applied
     summary["host_seconds"] = round(host_s, 2)
     summary["clock_scale"] = clock.scale
     try:
