@@ -229,6 +229,21 @@ def test_babbling_misconfigured_and_renamed_devices(tmp_path: Path) -> None:
     assert servo["reconnects"] >= 1 and ("recovered", "servo", "data again") in events
     est = read_log(flight_dir(tmp_path) / "estimator.bin").data(1)
     assert np.isfinite(est["roll_rad"]).all() and np.abs(est["roll_rad"]).max() < 1.0
+    # the flight's report shows each injected fault next to what the runtime said about it
+    out = tmp_path / "report"
+    done = subprocess.run([sys.executable, "-m", "companion", "logs", "report",
+                           str(flight_dir(tmp_path)), "-o", str(out), "--no-csv-size"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    html = (out / "report.html").read_text(encoding="utf-8")
+    for text in ("Faults and events", "--fault imu:wrongbaud=8-10,flood=14-16",
+                 "--vanish servo:22:1:renamed", "receiver UTC jumped +3600.0 s",
+                 "bytes arrive, none decode", "imu: the simulator injected flooded"):
+        assert text in html, text
+    import re
+
+    t_s = float(re.findall(r"<td>([\d.]+)</td><td>imu</td><td>silent</td>", html)[0])
+    assert 8.0 < t_s < 11.0  # flight time, as the fault was given
 
 
 def test_faults_injected_into_the_runtime_threads_are_survived(tmp_path: Path) -> None:

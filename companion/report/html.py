@@ -102,6 +102,31 @@ def _threads_table(s: Summary) -> str:
     return f"<table>{head}{''.join(out)}</table>{note}"
 
 
+def _events_section(s: Summary) -> str:
+    """Every fault a simulation injected, and what the runtime reported: the two side by side
+    are how a fault campaign's flight is read."""
+    if not s.event_counts and not s.injected:
+        return "<p class=note>No event reported (no summary.json, or nothing happened).</p>"
+    parts = []
+    if s.injected:
+        parts.append("<p>Injected on purpose:</p><ul>")
+        parts += [f"<li>{escape(i)}</li>" for i in s.injected]
+        parts.append("</ul>")
+    if s.event_counts:
+        parts.append("<table><tr><th>thread</th><th>event</th><th>count</th></tr>")
+        parts += [f"<tr><td>{escape(t)}</td><td>{escape(k)}</td><td>{n}</td></tr>"
+                  for (t, k), n in sorted(s.event_counts.items())]
+        parts.append("</table><table><tr><th>flight time (s)</th><th>thread</th><th>event</th>"
+                     "<th>detail</th></tr>")
+        parts += [f"<tr><td>{e.t_s:.2f}</td><td>{escape(e.thread)}</td><td>{escape(e.kind)}"
+                  f"</td><td>{escape(e.detail)}</td></tr>" for e in s.events]
+        parts.append("</table>")
+        listed, total = len(s.events), sum(s.event_counts.values())
+        if total > listed:
+            parts.append(f"<p class=note>The first {listed} of {total} events are listed.</p>")
+    return "".join(parts)
+
+
 def render_html(summary: Summary, figures: list[FigureEntry], problems: list[str]) -> str:
     """The report page; deterministic for a given input (no generation time)."""
     parts = [
@@ -111,6 +136,7 @@ def render_html(summary: Summary, figures: list[FigureEntry], problems: list[str
         "<h2>Summary</h2>", _summary_table(summary),
         "<h2>Logs</h2>", _logs_table(summary),
         "<h2>Threads</h2>", _threads_table(summary),
+        "<h2>Faults and events</h2>", _events_section(summary),
     ]
     missing = [f for f in figures if f.png is None]
     if problems or missing:

@@ -15,7 +15,10 @@ import numpy as np
 from companion.report.analysis import counter_gaps, csv_size_bytes
 from companion.report.flight import FlightData
 
-__all__ = ["LogRow", "Summary", "ThreadRow", "summarise"]
+__all__ = ["EventRow", "LogRow", "Summary", "ThreadRow", "summarise"]
+
+EVENT_ROWS_MAX = 400
+"""Events listed one by one; an hour of injected faults makes thousands, counted per kind."""
 
 IMU_COUNTER_MODULO = 100  # the IMU frame counter runs 0..99
 SERVO_SEQ_MODULO = 256  # the servo exchange sequence number is one byte
@@ -49,6 +52,14 @@ class ThreadRow:
     log_dropped: int | None = None
 
 
+@dataclass(frozen=True)
+class EventRow:
+    t_s: float  # flight time: seconds from the report's time origin
+    thread: str
+    kind: str
+    detail: str
+
+
 @dataclass
 class Summary:
     flight_dir: str
@@ -63,6 +74,12 @@ class Summary:
     csv_bytes: int | None
     csv_estimated: bool = False  # long formats converted in part and scaled
     counters: dict[str, int] = field(default_factory=dict)
+    events: list[EventRow] = field(default_factory=list)
+    """What the supervisor and the threads reported (summary.json), in time order."""
+    event_counts: dict[tuple[str, str], int] = field(default_factory=dict)
+    """(thread, kind) -> events, over the whole flight (also those not listed)."""
+    injected: list[str] = field(default_factory=list)
+    """Faults a simulation injected on purpose (run.json and summary.json), one line each."""
 
     @property
     def restarts(self) -> int:
@@ -123,6 +140,42 @@ def _counters(fd: FlightData) -> dict[str, int]:
     return out
 
 
+def _events(fd: FlightData) -> tuple[list[EventRow], dict[tuple[str, str], int]]:
+    raw = (fd.run_summary or {}).get("events")
+    rows: list[EventRow] = []
+    counts: dict[tuple[str, str], int] = {}
+    if not isinstance(raw, list):
+        return rows, counts
+    for e in raw:
+        if not isinstance(e, dict) or e.get("kind") in ("started", "stopped", None):
+            continue
+        key = (str(e.get("thread", "?")), str(e["kind"]))
+        counts[key] = counts.get(key, 0) + 1
+        t = e.get("t_s")
+        if len(rows) < EVENT_ROWS_MAX:
+            rows.append(EventRow(float(t) - fd.t0_ns / 1e9 if isinstance(t, (int, float))
+                                 else float("nan"), key[0], key[1], str(e.get("detail", ""))))
+    return rows, counts
+
+
+def _injected(fd: FlightData) -> list[str]:
+    out: list[str] = []
+    sim = (fd.run_info or {}).get("simulation")
+    if isinstance(sim, dict):
+        for key, flag in (("faults", "--fault"), ("vanish", "--vanish"),
+                          ("thread_faults", "--thread-fault"), ("clock_steps", "--clock-step")):
+            items = sim.get(key)
+            if isinstance(items, list):
+                out += [f"{flag} {item}" for item in items]
+    counts = ((fd.run_summary or {}).get("simulator") or {}).get("faults")
+    if isinstance(counts, dict):
+        for dev, c in counts.items():
+            if isinstance(c, dict):
+                done = ", ".join(f"{k} {v}" for k, v in c.items() if v and k != "chunks")
+                out.append(f"{dev}: the simulator injected {done or 'nothing'}")
+    return out
+
+
 def summarise(fd: FlightData, *, measure_csv: bool = True) -> Summary:
     rows = []
     estimated = False
@@ -153,6 +206,7 @@ def summarise(fd: FlightData, *, measure_csv: bool = True) -> Summary:
     sim_text = (f"SITL, scenario {sim.get('scenario')}, aircraft {sim.get('aircraft')}, "
                 f"seed {sim.get('seed')}" if sim else "real flight (no simulation in run.json)")
     scale = info.get("clock_scale")
+    events, event_counts = _events(fd)
     return Summary(
         flight_dir=str(fd.flight_dir),
         duration_s=fd.duration_s,
@@ -166,4 +220,7 @@ def summarise(fd: FlightData, *, measure_csv: bool = True) -> Summary:
         csv_bytes=csv_total,
         csv_estimated=estimated,
         counters=_counters(fd),
+        events=events,
+        event_counts=event_counts,
+        injected=_injected(fd),
     )
