@@ -8,7 +8,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint bench bench-quick bench-faults docs clean
+.PHONY: run test lint bench bench-quick bench-faults bench-soak docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ bench-quick: $(STAMP)
 
 bench-faults: $(STAMP)
 	$(BIN)/python bench/faults_bench.py
+	$(BIN)/python bench/fuzz_bench.py
+
+bench-soak: $(STAMP)
+	$(BIN)/python bench/soak_bench.py
 
 docs: $(STAMP)
 	$(BIN)/python -m companion.docgen docs/parameters.md

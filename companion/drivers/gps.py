@@ -125,7 +125,9 @@ class GpsDriver(SerialDevice):
 
     def _check_utc(self, utc_s: float, t_ns: int) -> None:
         """Nothing on board steers by the receiver's UTC (every timestamp is the computer's
-        clock), so a jump costs nothing but a confusing log: say so when it happens."""
+        clock), so a jump costs nothing but a confusing log: say so when it happens. Epochs
+        that waited in the port's buffer (the process was suspended) move it too: late data
+        is worth a notice as well."""
         offset = utc_s - t_ns / 1e9
         previous, self._utc_offset_s = self._utc_offset_s, offset
         if previous is None:
@@ -133,7 +135,7 @@ class GpsDriver(SerialDevice):
         delta = (offset - previous + 43200.0) % 86400.0 - 43200.0  # across midnight
         if abs(delta) > UTC_JUMP_S:
             self.utc_jumps += 1
-            self.notice(f"receiver UTC jumped {delta:+.1f} s", key="utc")
+            self.notice(f"receiver UTC jumped {delta:+.1f} s against the clock", key="utc")
 
     def counters(self) -> dict[str, int]:
         out = super().counters()
