@@ -8,6 +8,13 @@ per second (a token bucket) and at most `STEP_BUDGET_NS` of work per sender cycl
 telemetry that is due. A transfer may yield None for work done without a message (a CRC over
 a large file), so long work is cut into pieces too.
 
+The budget is charged with the bytes each message really took on the wire once packed
+(signature included, MAVLink 2's trimmed zeros excluded), so a signed link stays within it too;
+`message_bytes` is only the estimate for a message the sender did not pack. A ground station
+can ask faster than any budget drains, so every channel holds at most `MAX_PENDING` transfers:
+beyond that the oldest one not under way is dropped (`BulkStats.dropped`), and the memory a
+request flood can take is bounded whatever its rate.
+
 Runs in the link's send thread only; the receive thread hands transfers over by posting a
 callable to the link's queue.
 """
@@ -27,6 +34,7 @@ log = logging.getLogger(__name__)
 STEP_BUDGET_NS = 2_000_000  # longest bulk work per sender cycle
 BURST_S = 0.05  # the token bucket holds this many seconds of budget
 FRAME_OVERHEAD_BYTES = 12
+MAX_PENDING = 16  # transfers waiting per channel: a request flood's memory is bounded by this
 IDLE_NS = 1 << 62
 
 Transfer = Iterator[Msg | None]
@@ -43,8 +51,9 @@ class _Channel:
 class BulkStats:
     sent: int = 0
     bytes: int = 0
-    abandoned: int = 0
+    abandoned: int = 0  # under way, then stopped: client silent, superseded or cancelled
     failed: int = 0
+    dropped: int = 0  # never started: pushed out of a full channel by newer requests
 
 
 def message_bytes(msg: Msg) -> int:
@@ -54,17 +63,33 @@ def message_bytes(msg: Msg) -> int:
     return payload + FRAME_OVERHEAD_BYTES
 
 
+def wire_bytes(msg: Msg) -> int:
+    """Bytes `msg` took when it was last packed (pymavlink keeps the frame), else the estimate:
+    the real frame counts a signature the estimate does not know of."""
+    try:
+        packed = len(msg.get_msgbuf())
+    except Exception:  # not a pymavlink message, or one never packed
+        packed = 0
+    return packed if packed > 0 else message_bytes(msg)
+
+
 class BulkSender:
     """Named channels of transfers, drained fairly and within a byte rate.
 
     `replace` starts a transfer that supersedes whatever the channel was doing (a new log
     data request); `queue` appends one after the channel's others (FTP requests), except
     that a transfer already under way is abandoned when a new request comes: a client only
-    asks again once it has given up on the answer it was getting.
+    asks again once it has given up on the answer it was getting. A channel holds at most
+    `max_pending` transfers (the oldest waiting one goes first: its client has asked again or
+    moved on since), so nothing a client sends grows the sender without bound.
     """
 
-    def __init__(self, bytes_per_s: Callable[[], float]) -> None:
+    def __init__(self, bytes_per_s: Callable[[], float], *,
+                 max_pending: int = MAX_PENDING) -> None:
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be at least 1, not {max_pending}")
         self._bytes_per_s = bytes_per_s
+        self._max_pending = max_pending
         self._channels: dict[str, _Channel] = {}
         self._tokens = 0.0
         self._last_ns = 0
@@ -84,6 +109,13 @@ class BulkSender:
         if preempt and ch.started and ch.pending:
             self._drop_head(ch)
         ch.pending.append((transfer, alive))
+        while len(ch.pending) > self._max_pending:
+            # the oldest transfer not under way: the head keeps going unless it never started
+            index = 1 if ch.started else 0
+            dropped, _alive = ch.pending[index]
+            del ch.pending[index]
+            self.stats.dropped += 1
+            _close(dropped)
 
     def cancel(self, channel: str) -> None:
         ch = self._channels.get(channel)
@@ -99,6 +131,13 @@ class BulkSender:
 
     def busy(self) -> bool:
         return any(ch.pending for ch in self._channels.values())
+
+    def pending(self, channel: str | None = None) -> int:
+        """Transfers waiting or under way on `channel` (on every channel with None)."""
+        if channel is not None:
+            ch = self._channels.get(channel)
+            return len(ch.pending) if ch is not None else 0
+        return sum(len(ch.pending) for ch in self._channels.values())
 
     def _channel(self, name: str) -> _Channel:
         ch = self._channels.get(name)
@@ -149,11 +188,11 @@ class BulkSender:
                 progressed = True
                 if item is None:
                     continue
-                size = message_bytes(item)
+                emit([item])
+                size = wire_bytes(item)  # after packing: what the link really carried
                 self._tokens -= size
                 self.stats.sent += 1
                 self.stats.bytes += size
-                emit([item])
         if not self.busy():
             return IDLE_NS
         if self._tokens > 0:

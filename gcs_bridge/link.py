@@ -243,20 +243,25 @@ class Link:
                 # frame, and must not swallow the start of the same peer's next datagram.
                 self.counters.parse_errors += 1
                 _reset_parser(parser)
+            accepted = trusted = False
             for msg in msgs:
                 frames += 1
-                self._on_message(msg)
+                if self._on_message(msg):
+                    accepted = True
+                    trusted = trusted or self.signed_in
+            if accepted:
+                self.transport.accept_peer(peer, trusted)
         return frames
 
-    def _on_message(self, msg: RxMessage) -> None:
+    def _on_message(self, msg: RxMessage) -> bool:
+        """Check and dispatch one frame; True when it was accepted (acted on)."""
         if msg.get_type() == "BAD_DATA":
             self.counters.parse_errors += 1
-            return
+            return False
         frame = msg.get_msgbuf()
-        self._tlog(frame)
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         if src == (self.core.sysid, self.core.compid):
-            return  # our own frames echoed (loopback radios, broadcast UDP)
+            return False  # our own frames echoed (loopback radios, broadcast UDP)
         self.counters.rx_frames += 1
         self.signed_in = False
         if self._checker is not None:
@@ -265,12 +270,14 @@ class Link:
                 command = getattr(msg, "command", None)
                 if not (why == "unsigned" and self.policy.unsigned_reads
                         and not is_write(msg.get_msgId(), command)):
-                    self.refuse(msg, why)
-                    return
+                    self.refuse(msg, why)  # counted, not written to the tlog: a flood of
+                    return False           # refused frames must not fill the disk
             else:
                 self.signed_in = True
+        self._tlog(frame)
         self._note_heard(src)
         self.dispatcher.handle(self, msg)
+        return True
 
     def _note_heard(self, src: tuple[int, int]) -> None:
         self.heard[src] = time.monotonic()

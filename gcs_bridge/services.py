@@ -6,6 +6,13 @@ one ground station's download or typing never disturbs another's. Requests arriv
 receive thread and are handed to its send thread as paced transfers (`gcs_bridge.bulk`), so
 disk reads and long answers happen where telemetry is sent and never ahead of it.
 
+Hostile or broken ground stations: every answer to a LOG_* or FTP request goes through the
+link's bulk sender, so it is paced by MAV_BULK_KB_S whatever the request rate; a log data
+request replaces the one before, FTP requests queue up to `bulk.MAX_PENDING`. The only answer
+that is not a transfer, the STATUSTEXT about an unknown log id, is sent at most once per
+`UNKNOWN_LOG_REPORT_S` (the others are counted in `unknown_log_requests`): before, a storm of
+such requests was reflected one STATUSTEXT each, five times the bulk budget.
+
 Who may do what: listing and downloading are reads. Erasing flights, the console and FTP writes
 change the aircraft: on a link with signing they need a signed message (the signing policy
 refuses unsigned LOG_ERASE and SERIAL_CONTROL before they get here; FTP writes additionally
@@ -15,6 +22,7 @@ need a key to be set at all, see `may_write_files`).
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -36,6 +44,7 @@ LOG_CHANNEL = "log"
 FTP_CHANNEL = "ftp"
 CONSOLE_CHANNEL = "console"
 NO_FLIGHTS = Path("/nonexistent-flight-root")  # FTP then serves only the metadata files
+UNKNOWN_LOG_REPORT_S = 1.0  # at most one "no such log" STATUSTEXT per link per this
 
 
 class LinkServices:
@@ -54,6 +63,8 @@ class LinkServices:
         self.console = Console(link.core, flights=self._flights)
         self.ftp = FtpServer(flight_root if flight_root is not None else NO_FLIGHTS,
                              virtual=metadata.virtual_files(), protected=current_flight)
+        self.unknown_log_requests = 0  # LOG_REQUEST_DATA for ids not in the list
+        self._unknown_log_reported_s = -UNKNOWN_LOG_REPORT_S
 
     def close(self) -> None:
         self.ftp.close()
@@ -106,7 +117,9 @@ class LinkServices:
     def log_request_list(self, msg: RxMessage) -> None:
         requester = (msg.get_srcSystem(), msg.get_srcComponent())
         if self.logs is None:  # no flight directory: "no logs", as the protocol says
-            self.link.post([mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0)])
+            # through the bulk sender like any answer to a request, so a storm is paced
+            self.link.post(lambda link: link.bulk.replace(
+                LOG_CHANNEL, iter([mavlink.MAVLink_log_entry_message(0, 0, 0, 0, 0)])))
             return
         logs = self.logs
         start, end = int(msg.start), int(msg.end)
@@ -121,7 +134,11 @@ class LinkServices:
         logs = self.logs
         log_id, offset, count = int(msg.id), int(msg.ofs), int(msg.count)
         if logs.archive(log_id) is None:
-            self.link.notify(mavlink.MAV_SEVERITY_WARNING, f"log {log_id}: no such log")
+            self.unknown_log_requests += 1
+            now_s = time.monotonic()
+            if now_s - self._unknown_log_reported_s >= UNKNOWN_LOG_REPORT_S:
+                self._unknown_log_reported_s = now_s
+                self.link.notify(mavlink.MAV_SEVERITY_WARNING, f"log {log_id}: no such log")
             return
         self.link.post(lambda link: link.bulk.replace(
             LOG_CHANNEL, _lazy(lambda: logs.request_data(log_id, offset, count)),

@@ -176,6 +176,14 @@ class SignatureChecker:
             self._streams.popitem(last=False)
         return None
 
+    def streams(self) -> dict[tuple[int, int, int], int]:
+        """A copy of the stream table, (link id, system id, component id) -> last timestamp.
+
+        For inspection (tests, the flood benchmark): only frames signed with the key ever
+        create or advance an entry, so forged traffic must leave this table unchanged.
+        """
+        return dict(self._streams)
+
 
 @dataclass(frozen=True)
 class LinkPolicy:

@@ -124,6 +124,12 @@ class Transport(abc.ABC):
     def peer_count(self) -> int:
         return 1
 
+    def accept_peer(self, peer: Hashable, trusted: bool) -> None:
+        """The link accepted a frame from `peer` (`trusted`: its signature verified). A
+        transport that answers whoever talks to it (udpin) sends to peers it was told of here,
+        never to a source whose bytes were garbage or refused. Any thread."""
+        return  # a serial port or a TCP connection has its one peer already
+
 
 
 # ------------------------------------------------------------------------------------ sockets

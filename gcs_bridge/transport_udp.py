@@ -32,6 +32,7 @@ class UdpTransport(SocketTransport):
         self._sock: socket.socket | None = None
         self._dest: tuple[str, int] | None = None
         self._peers: dict[Hashable, float] = {}  # address -> host monotonic time last heard
+        self._trusted: set[Hashable] = set()  # peers whose signed frames verified
         self._lock = threading.Lock()
 
     def open(self) -> None:
@@ -65,6 +66,7 @@ class UdpTransport(SocketTransport):
         self._close_wake()
         with self._lock:
             self._peers.clear()
+            self._trusted.clear()
 
     @property
     def local_port(self) -> int:
@@ -103,25 +105,45 @@ class UdpTransport(SocketTransport):
                     continue
                 break
             self.counters.bytes_in += len(data)
-            if self.endpoint.kind == "udpin":
-                self._note_peer(addr)
             chunks.append((addr, data))
         return chunks
 
-    def _note_peer(self, addr: Hashable) -> None:
+    def accept_peer(self, peer: Hashable, trusted: bool) -> None:
+        """A source becomes a destination only once the link accepted a frame from it, so
+        garbage and refused frames (from forged source addresses, too) cannot push a ground
+        station out of the table. When the table is full, the stale go first, then the
+        quietest untrusted peer; a trusted (signature-verified) peer makes way only for
+        another trusted one, and an untrusted newcomer is not added when every slot is
+        trusted and busy."""
+        if self.endpoint.kind != "udpin":
+            return
         now = time.monotonic()
         with self._lock:
-            if addr not in self._peers:
-                if len(self._peers) >= MAX_PEERS:
-                    stale = [a for a, t in self._peers.items() if now - t > UDP_PEER_TIMEOUT_S]
-                    if stale:
-                        for a in stale:
-                            del self._peers[a]
-                    else:  # all busy: forget the quietest rather than refuse a newcomer
-                        del self._peers[min(self._peers, key=lambda a: self._peers[a])]
+            if trusted:
+                self._trusted.add(peer)
+            if peer not in self._peers:
+                if len(self._peers) >= MAX_PEERS and not self._make_room(now, trusted):
+                    self._trusted.discard(peer)
+                    return
                 self.counters.peers_seen += 1
-                log.info("%s: ground station at %s", self.endpoint.url, addr)
-            self._peers[addr] = now
+                log.info("%s: ground station at %s", self.endpoint.url, peer)
+            self._peers[peer] = now
+
+    def _make_room(self, now: float, for_trusted: bool) -> bool:
+        stale = [a for a, t in self._peers.items() if now - t > UDP_PEER_TIMEOUT_S]
+        for a in stale:
+            del self._peers[a]
+            self._trusted.discard(a)
+        if stale:
+            return True
+        untrusted = [a for a in self._peers if a not in self._trusted]
+        pool = untrusted or (list(self._peers) if for_trusted else [])
+        if not pool:
+            return False
+        quietest = min(pool, key=lambda a: self._peers[a])
+        del self._peers[quietest]
+        self._trusted.discard(quietest)
+        return True
 
     def send(self, data: bytes) -> bool:
         sock = self._sock
