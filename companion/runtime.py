@@ -21,7 +21,7 @@ from typing import Any, Protocol
 from companion import __version__
 from companion.core.clock import Clock
 from companion.core.config import Config
-from companion.core.files import write_json_atomic
+from companion.core.files import write_json_bounded
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
 from companion.drivers.registry import DEVICES, make_driver
@@ -32,6 +32,7 @@ from companion.watchdog.manager import MANAGER_PARAMS
 log = logging.getLogger(__name__)
 
 SWITCH_INTERVAL_S = 0.0005
+SUMMARY_WRITE_TIMEOUT_S = 2.0  # host seconds shutdown waits for summary.json on a slow disk
 
 RUNTIME_PARAMS: list[ParamSpec] = [
     int_param("LOG_TEXT", 0, 0, 1, "",
@@ -241,10 +242,8 @@ class Runtime:
             self.logs.close()
             self.logs = None
         if not self.opts.dry and self._started:
-            try:
-                write_json_atomic(self.flight_dir / "summary.json", self.summary())
-            except OSError as exc:
-                log.error("cannot write summary.json: %s", exc)
+            write_json_bounded(self.flight_dir / "summary.json", self.summary(),
+                               SUMMARY_WRITE_TIMEOUT_S)
 
     @contextlib.contextmanager
     def _signals(self, enabled: bool) -> Iterator[None]:

@@ -369,3 +369,26 @@ def test_log_opened_while_the_writer_drains_keeps_its_definitions(tmp_path: Path
         svc._sinks.append(late._sink)
     svc.close()
     assert list(read_log(tmp_path / "late.bin").data(1)["b"]) == [7]
+
+
+def test_a_summary_write_on_a_hung_disk_does_not_hold_shutdown(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch,
+                                                               caplog: pytest.LogCaptureFixture
+                                                               ) -> None:
+    """fsync that does not return (a hung USB stick): the write is given up after its timeout,
+    said in the log, and the caller goes on."""
+    from companion.core.files import write_json_bounded
+
+    release = threading.Event()
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: release.wait(10.0))
+    try:
+        t0 = time.monotonic()
+        assert not write_json_bounded(tmp_path / "summary.json", {"a": 1}, 0.3)
+        assert time.monotonic() - t0 < 2.0
+        assert "not confirmed on disk within 0.3 s" in caplog.text
+    finally:
+        release.set()
+        monkeypatch.setattr(os, "fsync", real_fsync)
+    assert write_json_bounded(tmp_path / "other.json", {"b": 2}, 5.0)
+    assert (tmp_path / "other.json").read_text().strip().endswith("}")

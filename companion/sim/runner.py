@@ -17,7 +17,7 @@ from typing import Any
 
 from companion.core.clock import Clock
 from companion.core.config import Config
-from companion.core.files import write_json_atomic
+from companion.core.files import write_json_bounded
 from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
 from companion.sim.clock_faults import WallClockSteps, parse_clock_step
@@ -182,10 +182,7 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
         summary["clock_steps"] = steps.applied
     summary["host_seconds"] = round(host_s, 2)
     summary["clock_scale"] = clock.scale
-    try:
-        write_json_atomic(flight_dir / "summary.json", summary)
-    except OSError as exc:
-        log.error("cannot write summary.json: %s", exc)
+    write_json_bounded(flight_dir / "summary.json", summary, 2.0)
     return summary
 
 
