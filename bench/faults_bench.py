@@ -56,6 +56,7 @@ class Flight:
     rss_mb: list[float] = field(default_factory=list)
     t_start: float = 0.0
     speed: float = SCALE
+    key: bytes | None = None  # the MAVLink signing key, when the flight's link requires one
 
     def start(self) -> None:
         cmd = [sys.executable, "-m", "companion", "sim", "--speed", str(self.speed), "--duration",
@@ -76,7 +77,7 @@ class Flight:
 
     def wait_ready(self, timeout_s: float = 60.0) -> bool:
         """Until the runtime answers a parameter read on its MAVLink port."""
-        return param_read_s(self.mav_port, timeout_s) is not None
+        return param_read_s(self.mav_port, timeout_s, key=self.key) is not None
 
     def finish(self, timeout_s: float) -> tuple[dict[str, Any] | None, int]:
         assert self.proc is not None
@@ -98,9 +99,12 @@ class Flight:
         return dirs[-1] if dirs else None
 
 
-def param_read_s(port: int, timeout_s: float) -> float | None:
-    """Host seconds until a well-behaved ground station's PARAM_REQUEST_READ is answered."""
+def param_read_s(port: int, timeout_s: float, key: bytes | None = None) -> float | None:
+    """Host seconds until a well-behaved ground station's PARAM_REQUEST_READ is answered
+    (signed with `key` when given)."""
     conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=245)
+    if key is not None:
+        conn.setup_signing(key, sign_outgoing=True, link_id=1)
     t0 = time.monotonic()
     try:
         while time.monotonic() - t0 < timeout_s:
@@ -185,9 +189,9 @@ def common(summary: dict[str, Any] | None, flight: Flight, code: int) -> dict[st
 
 def fly(duration_s: float, extra: list[str] | None = None,
         during: Callable[[Flight], dict[str, str]] | None = None,
-        finish_timeout_s: float | None = None, speed: float = SCALE,
+        finish_timeout_s: float | None = None, speed: float = SCALE, key: bytes | None = None,
         ) -> tuple[Flight, dict[str, Any] | None, int, dict[str, str]]:
-    flight = Flight(duration_s, list(extra or []), speed=speed)
+    flight = Flight(duration_s, list(extra or []), speed=speed, key=key)
     flight.start()
     found: dict[str, str] = {}
     if not flight.wait_ready():
@@ -325,6 +329,58 @@ def row_mavlink_flood(d: float, flood_s: float, rate: float) -> Row:
         figs["link"] = (f"rx_frames {m['rx_frames']}, parse_errors {m['parse_errors']}, "
                         f"refused {m['refused']}, bytes_in {m['transport']['bytes_in']}")
     return Row("MAVLink flood (udpin)", f"bench/mavflood.py, {rate:g} datagrams/s", figs)
+
+
+def row_signed_flood(d: float, flood_s: float, rate: float) -> Row:
+    """A link that requires signing, flooded with signed-looking garbage (valid CRCs, random
+    signatures, link ids and timestamps): refused and counted, the signed GCS still served."""
+    from signed_flood import signed_garbage_flood
+
+    from gcs_bridge.signing import key_from_text, new_key_file
+
+    key_path = Path(tempfile.mkdtemp(prefix="faults-key-")) / "mavlink.key"
+    key = key_from_text(new_key_file(key_path))
+
+    def during(f: Flight) -> dict[str, str]:
+        t0 = time.monotonic()
+        sent = signed_garbage_flood("127.0.0.1", f.mav_port, flood_s, seed=5, rate_per_s=rate)
+        out = {"flood": f"{sum(v for k, v in sent.items() if k != 'send_failed')} frames in "
+                        f"{time.monotonic() - t0:.1f} s"}
+        t = param_read_s(f.mav_port, 10.0, key=key)
+        out["signed GCS after"] = f"answered in {t:.3f} s" if t is not None else "no answer"
+        return out
+
+    f, s, code, found = fly(d, ["--set", f"mavlink.key_file={key_path}"], during, key=key)
+    figs = common(s, f, code)
+    figs.update(found)
+    if s is not None and s.get("messages"):
+        m = s["messages"][0]
+        figs["link"] = (f"rx_frames {m['rx_frames']}, refused {m['refused']}, "
+                        f"refusals {m.get('refusals', {})}")
+    return Row("signed link: flood of signed-looking garbage", f"bench/signed_flood.py, "
+               f"{rate:g} frames/s for {flood_s:g} s", figs)
+
+
+def row_transfer_flood(d: float, flood_s: float) -> Row:
+    """LOG and FTP requests for huge ranges from several fake ground stations, then a ground
+    station that vanishes mid-download while another downloads after it."""
+    from transfer_flood import transfer_flood, vanishing_download
+
+    def during(f: Flight) -> dict[str, str]:
+        sent = transfer_flood("127.0.0.1", f.mav_port, flood_s, seed=3)
+        out = {"requests": f"{sum(sent.values())} of {len(sent)} kinds"}
+        f.sample_rss()
+        t = param_read_s(f.mav_port, 5.0)
+        out["GCS after"] = f"answered in {t:.3f} s" if t is not None else "no answer"
+        out.update({f"vanishing GCS: {k}": v for k, v in
+                    vanishing_download("127.0.0.1", f.mav_port, 20.0).items()})
+        return out
+
+    f, s, code, found = fly(d, [], during)
+    figs = common(s, f, code)
+    figs.update(found)
+    return Row("LOG and FTP request floods, a GCS vanishing mid-transfer",
+               f"bench/transfer_flood.py for {flood_s:g} s", figs)
 
 
 def row_legacy_flood(d: float, flood_s: float, rate: float) -> Row:
@@ -490,10 +546,26 @@ def main() -> int:
         rows.append(row_thread(d, "gps", "pyloop", 20, "a Python loop ignoring its stop event"))
         rows.append(row_thread(d, "estimator", "cblock", 20, "stuck inside C"))
         rows.append(row_thread(d, "estimator", "alloc", 20, "allocates 1 MiB per step for 10 s"))
+    rows.append(row_device(d, "imu", "wrongbaud=20-23", "at twice the expected baud rate for 3 s",
+                           gap=True))
+    rows.append(row_device(d, "imu", "flood=20-25", "floods copies (10x its rate) for 5 s"))
+    rows.append(row_device(d, "gps", "utcstep=20:3600", "UTC jumps +1 h"))
+    if not args.quick:
+        rows.append(row_device(d, "gps", "flood=20-25", "floods copies (10x its rate) for 5 s"))
+        rows.append(row_vanish(d, "servo", 20.0, 3.0, renamed=True))
+        rows.append(row_clock_step(d))
     rows.append(row_mavlink_flood(d, 5.0 if args.quick else 8.0, 3000.0))
+    rows.append(row_signed_flood(d, 5.0 if args.quick else 8.0, 4000.0))
+    rows.append(row_transfer_flood(d, 5.0 if args.quick else 8.0))
     if not args.quick:
         rows.append(row_legacy_flood(d, 8.0, 2000.0))
     rows.append(row_disk_full(d, 1500))
+    from faults_disk import row_readonly, row_slow_fsync, row_slow_write
+
+    rows.append(row_readonly(d, 5.0))
+    rows.append(row_slow_fsync(d))
+    if not args.quick:
+        rows.append(row_slow_write(d))
     rows.append(row_sigstop(d, 5.0))
     rows.append(row_nominal_starts(4 if args.quick else 20, 15.0))
     if not args.quick:
