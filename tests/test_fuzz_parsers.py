@@ -1160,6 +1160,28 @@ def test_mavlink_get_message_interval_answers_or_refuses_any_id(
     assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 
+def test_mavlink_message_interval_beyond_int32_is_answered(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Found by bench/fuzz_bench.py: SET_MESSAGE_INTERVAL accepted any interval, so a later
+    MESSAGE_INTERVAL (int32 interval_us) could not be packed and was never sent."""
+    caplog.set_level(logging.ERROR)
+    attitude = float(_m.MAVLINK_MSG_ID_ATTITUDE)
+    with fuzz_vehicle() as (_vehicle, gcs, _attacker):
+        gcs.send(mavlink.MAVLink_command_long_message(
+            VEHICLE_ID, 1, int(_m.MAV_CMD_SET_MESSAGE_INTERVAL), 0, attitude, 3e9, 0, 0, 0, 0, 0))
+        assert gcs.recv(2.0, "COMMAND_ACK") is not None
+        get = int(_m.MAV_CMD_GET_MESSAGE_INTERVAL)
+        gcs.send(mavlink.MAVLink_command_long_message(VEHICLE_ID, 1, get, 0, attitude, 0, 0, 0,
+                                                      0, 0, 0))
+        ack = gcs.recv(2.0, "COMMAND_ACK", lambda m: m.command == get)
+        assert ack is not None and ack.result == _m.MAV_RESULT_ACCEPTED
+        answer = gcs.recv(1.0, "MESSAGE_INTERVAL")
+        assert answer is not None, "ACCEPTED but no MESSAGE_INTERVAL (it could not be packed)"
+        assert answer.interval_us == -1 or 0 < answer.interval_us <= 2**31 - 1
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
 def test_mavlink_cut_frame_in_one_datagram_does_not_eat_the_next() -> None:
     with fuzz_vehicle() as (vehicle, gcs, _attacker):
         probe = Probe(vehicle, gcs)
