@@ -4,6 +4,10 @@ Everything here is pure and deterministic given a ``numpy.random.Generator``: ca
 true state and get back exactly the bytes the real device would send (per the device contract),
 so the same driver code runs in SITL and in flight. Writing the bytes to pseudo-terminals at the
 real rates is the SITL runner's job, not this module's.
+
+Size: the three devices and the faults applied to their bytes share one set of conventions (a
+chunk is a frame or an epoch, everything deterministic from one generator); split, each part
+would restate them.
 """
 
 from __future__ import annotations
