@@ -217,7 +217,9 @@ def main() -> int:
     rep = subprocess.run([sys.executable, "-m", "companion", "logs", "report", str(fd), "-o",
                           str(out), "--no-csv-size"], capture_output=True, text=True,
                          timeout=600)
-    print(f"| flight report | {out / 'report.html'} (exit {rep.returncode}) |")
+    print(f"| flight report | written to the flight directory, report/report.html (exit "
+          f"{rep.returncode}) |")
+    print(f"\nFlight directory: {fd}", file=sys.stderr)
     return 0 if code == 0 else 1
 
 
