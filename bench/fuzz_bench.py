@@ -319,37 +319,10 @@ def _legacy_target(tm: ModuleType) -> Target:
                   note="codec.decode/encode, then monitor Fleet.apply")
 
 
-def _written_log(folder: Path) -> bytes:
-    """A valid log written by the runtime's LogService (as the test's `written_log` fixture)."""
-    from companion.logs.writer import LogService
-
-    t = [1_700_000_000 * 10**9]
-
-    def clock() -> int:
-        t[0] += 1_000_000
-        return t[0]
-
-    with LogService(folder, flush_period_ms=5, clock_ns=clock) as svc:
-        lg = svc.open("fuzz")
-        lg.define(1, "%d,%f,%lf", ["n", "x", "y"])
-        lg.define(2, "%hhu", ["px"])
-        lg.define(3, "%hhu,%lld", ["a", "b"])
-        lg.begin()
-        for k in range(12):
-            lg.log(1, k, k / 4, k / 3)
-            lg.log_array(2, bytes(range(k % 5)))
-            lg.log(3, k, -k * 10**12)
-        lg.end()
-        lg.begin()
-        lg.log(1, 99, 0.5, 0.25)
-        lg.end()
-    return (folder / "fuzz.bin").read_bytes()
-
-
 def _log_reader_target(tm: ModuleType, work: Path) -> Target:
     from companion.logs import read_log
 
-    raw = _written_log(work / "log-src")
+    raw = tm.write_fuzz_log(work / "log-src")
     path = work / "mutated.bin"
     strategy = st.one_of(
         tm.log_mutations(raw), tm.log_mutations(raw),
@@ -461,7 +434,7 @@ class _Bridge:
         flights = work / "flights"
         flight = flights / "20260101T000000Z"
         flight.mkdir(parents=True)
-        (flight / "fuzz.bin").write_bytes(_written_log(work / "bridge-log"))
+        (flight / "fuzz.bin").write_bytes(tm.write_fuzz_log(work / "bridge-log"))
         (flight / "run.json").write_text('{"started_utc": "2026-01-01T00:00:00"}')
         self.vehicle = SyntheticVehicle(["udpin:127.0.0.1:1"], vehicle_id=tm.VEHICLE_ID,
                                         extra_params=tm._FUZZ_PARAMS,
@@ -679,7 +652,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
     log_root = work / "logserver"
     flight = log_root / "flight-a"
     flight.mkdir(parents=True)
-    (flight / "fuzz.bin").write_bytes(_written_log(work / "logserver-src"))
+    (flight / "fuzz.bin").write_bytes(tm.write_fuzz_log(work / "logserver-src"))
     (log_root / "20260102T030405Z").mkdir()
     (log_root / "20260102T030405Z" / "x.csv").write_text("a,b\n1,2\n")
     run_json = st.one_of(

@@ -36,6 +36,8 @@ from faults_bench import SCALE, Flight, param_list_s, thread_of  # noqa: E402
 from mavflood import flood  # noqa: E402
 
 from companion.logs import read_log  # noqa: E402
+from companion.sim.thread_faults import parse_thread_fault  # noqa: E402
+from companion.sim.world import parse_fault, parse_vanish  # noqa: E402
 
 
 def draw_plan(duration_s: float, rng: random.Random) -> tuple[list[str], list[float]]:
@@ -74,20 +76,18 @@ def random_datagrams(r: np.random.Generator) -> Callable[[], bytes]:
 
 def fault_windows(extra: list[str], dev: str) -> list[tuple[float, float]]:
     """Flight-time windows in which `dev`'s own rate is meant to suffer (its device faults,
-    its port gone, its thread's injected fault), each widened by a few seconds."""
+    its port gone, its thread's injected fault), each widened by a few seconds; the options are
+    read by the parsers `companion sim` uses."""
     out: list[tuple[float, float]] = []
     for flag, value in zip(extra, extra[1:], strict=False):
         if flag == "--fault" and value.startswith(dev + ":"):
-            for item in value.split(":", 1)[1].split(","):
-                key, _, v = item.partition("=")
-                if key in ("silence", "flood", "wrongbaud"):
-                    a, _, b = v.partition("-")
-                    out.append((float(a) - 2, float(b) + 5))
+            plan = parse_fault(value)[1]
+            out += [(a - 2, b + 5) for a, b in plan.silence_s + plan.flood_s + plan.wrong_baud_s]
         elif flag == "--vanish" and value.startswith(dev + ":"):
-            _, at, dur, *_ = value.split(":")
-            out.append((float(at) - 2, float(at) + float(dur) + 10))
+            v = parse_vanish(value)
+            out.append((v.start_s - 2, v.start_s + v.duration_s + 10))
         elif flag == "--thread-fault" and value.startswith(dev + ":"):
-            at = float(value.split(":")[2])
+            at = parse_thread_fault(value).at_s
             out.append((at - 2, at + 10))
     return out
 

@@ -561,10 +561,9 @@ def test_legacy_monitor_malformed_reasons_stay_bounded() -> None:
 _LOG_KINDS = {"unknown_type", "past_eof", "undefined_index", "length_mismatch", "bad_definition"}
 
 
-@pytest.fixture(scope="module")
-def written_log(tmp_path_factory: pytest.TempPathFactory) -> bytes:
-    """A valid log written by the runtime's own LogService (3 formats, arrays, 2 Begin/End pairs)."""
-    folder = tmp_path_factory.mktemp("fuzzlog")
+def write_fuzz_log(folder: Path) -> bytes:
+    """A valid log written by the runtime's own LogService (3 formats, arrays, 2 Begin/End
+    pairs): the seed the log-reader fuzzing mutates, here and in bench/fuzz_bench.py."""
     t = [1_700_000_000 * 10**9]
 
     def clock() -> int:
@@ -589,6 +588,11 @@ def written_log(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     lf = read_log_bytes(raw)
     assert lf.closed_cleanly and not lf.damage and lf.indexes == [1, 2, 3]
     return raw
+
+
+@pytest.fixture(scope="module")
+def written_log(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    return write_fuzz_log(tmp_path_factory.mktemp("fuzzlog"))
 
 
 @st.composite

@@ -278,6 +278,21 @@ class Sampler:
 
 
 # ============================================================================ the tests
+def storm_while_reading(s: Setup, request: Callable[[int], Message]
+                        ) -> tuple[int, list[float | None], Sampler]:
+    """2.5 s of `request` storm from the attackers while the good client reads two parameters
+    and the sampler watches the link's queues: (requests sent, read times, sampler)."""
+    reads: list[float | None] = []
+    sampler = Sampler(s.link)
+    reader = threading.Thread(target=lambda: reads.extend(
+        [s.good.param_read_s(), s.good.param_read_s()]))
+    reader.start()
+    sent = s.attackers.storm(request, 2.5, every=s.good.heartbeat)
+    reader.join(2 * PARAM_READ_S + 1)
+    sampler.stop()
+    return sent, reads, sampler
+
+
 def test_bulk_channel_holds_at_most_max_pending_transfers() -> None:
     """Unit: a queue flood drops the oldest waiting transfer, never the one under way."""
     sender = bulk.BulkSender(lambda: 1e9, max_pending=4)
@@ -340,15 +355,8 @@ def test_log_request_data_storm_keeps_the_budget_and_one_transfer(tmp_path: Path
                 1, 1, ids[n % len(ids)], offsets[n // 3 % len(offsets)],
                 counts[n // 7 % len(counts)])
 
-        reads: list[float | None] = []
         t0 = time.monotonic()
-        sampler = Sampler(s.link)
-        reader = threading.Thread(target=lambda: reads.extend(
-            [s.good.param_read_s(), s.good.param_read_s()]))
-        reader.start()
-        sent = s.attackers.storm(request, 2.5, every=s.good.heartbeat)
-        reader.join(2 * PARAM_READ_S + 1)
-        sampler.stop()
+        sent, reads, sampler = storm_while_reading(s, request)
         t1 = time.monotonic()
         time.sleep(0.3)
         rx = s.good.since(t0)
@@ -401,15 +409,8 @@ def test_ftp_floods_are_bounded_and_answered_within_the_budget(tmp_path: Path) -
         def request(n: int) -> Message:
             return requests[n % len(requests)](n)
 
-        reads: list[float | None] = []
         t0 = time.monotonic()
-        sampler = Sampler(s.link)
-        reader = threading.Thread(target=lambda: reads.extend(
-            [s.good.param_read_s(), s.good.param_read_s()]))
-        reader.start()
-        sent = s.attackers.storm(request, 2.5, every=s.good.heartbeat)
-        reader.join(2 * PARAM_READ_S + 1)
-        sampler.stop()
+        sent, reads, sampler = storm_while_reading(s, request)
         rx = s.good.since(t0)
         assert sent >= 5000, f"only {sent} requests sent"
         assert sampler.max_ftp <= bulk.MAX_PENDING, vars(sampler)
