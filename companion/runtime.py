@@ -131,6 +131,7 @@ class Runtime:
             self.flight_dir = self.opts.flight_dir or new_flight_dir(Path(cfg.logs.dir))
             self.flight_dir.mkdir(parents=True, exist_ok=True)
         self.logs: Any = None
+        self._log_stats: dict[str, Any] = {}
         if cfg.logs.enabled and not dry:
             from companion.logs import LogService
 
@@ -240,6 +241,7 @@ class Runtime:
                 log.exception("closing bridge %s", type(bridge).__name__)
         if self.logs is not None:
             self.logs.close()
+            self._log_stats = self.logs.stats()
             self.logs = None
         if not self.opts.dry and self._started:
             write_json_bounded(self.flight_dir / "summary.json", self.summary(),
@@ -281,6 +283,9 @@ class Runtime:
             "files": {p.name: p.stat().st_size for p in files},
             "events": list(self.event_log),
             "messages": [s for b in self.bridges for s in b.stats()],
+            # the writer's own account: records dropped in flight and left unwritten at the
+            # end (a disk too slow to finish within the close's patience), files logging off
+            "logs": {k: v for k, v in self._log_stats.items() if k != "running"},
         }
 
 

@@ -101,7 +101,7 @@ class MavlinkBridge:
             link = Link(index, ep, self.core, self.dispatcher, self.params, policy,
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,
-                        broadcast_text=self.broadcast_text)
+                        broadcast_text=self.broadcast_text, tlog_service=ctx.logs)
             link.services = LinkServices(link, root, self._current_flight, self.metadata)
             rx = LinkReceiver(link)  # the manager hands out the ids
             tx = LinkSender(link)
@@ -186,6 +186,8 @@ class MavlinkBridge:
                 "latency_us_p50": lat[len(lat) // 2] if lat else None,
                 "latency_us_p99": lat[min(len(lat) - 1, int(len(lat) * 0.99))] if lat else None,
                 "tlog": str(link.tlog.path) if link.tlog is not None else None,
+                "tlog_frames": link.tlog.frames if link.tlog is not None else 0,
+                "tlog_dropped": link.tlog.dropped if link.tlog is not None else 0,
             })
         return out
 

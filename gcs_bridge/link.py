@@ -42,6 +42,7 @@ from gcs_bridge.tlog import TlogWriter
 from gcs_bridge.transport import Transport, make_transport
 
 if TYPE_CHECKING:
+    from companion.logs.writer import LogService
     from gcs_bridge.dispatch import Dispatcher
     from gcs_bridge.param_protocol import ParamProtocol
     from gcs_bridge.services import LinkServices
@@ -76,6 +77,7 @@ class Link:
                  params: ParamProtocol, policy: LinkPolicy, *, events: MessageQueue[WatchdogEvent],
                  text_ids: status.StatusTextIds, tlog_path: Path | None,
                  tlog_enabled: Callable[[], bool], broadcast_text: Callable[[int, str], None],
+                 tlog_service: LogService | None = None,
                  transport: Transport | None = None) -> None:
         self.index = index
         self.endpoint = endpoint
@@ -91,7 +93,7 @@ class Link:
         self.counters = status.LinkCounters()
         self.scheduler = StreamScheduler(core, line_bytes_s=self.transport.bytes_per_s,
                                          signed=policy.key is not None)
-        self.tlog = TlogWriter(tlog_path) if tlog_path is not None else None
+        self.tlog = TlogWriter(tlog_path, tlog_service) if tlog_path is not None else None
         self._tlog_enabled = tlog_enabled
         self._broadcast_text = broadcast_text
         self._refs = 0

@@ -12,6 +12,7 @@ from pymavlink import mavutil
 from pymavlink.generator.mavcrc import x25crc
 
 from companion.core.params import float_param, int_param
+from companion.logs import LogService
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import (
     MSG_ID_PROTOCOL_VERSION,
@@ -30,7 +31,7 @@ from gcs_bridge.signing import (
     signing_timestamp,
 )
 from gcs_bridge.status import statustext
-from gcs_bridge.tlog import TlogWriter, strip_signature
+from gcs_bridge.tlog import TlogWriter, strip_signature, tlog_length
 
 INT_SPEC = int_param("TST_INT", 0, -(2**31), 2**31 - 1)
 FLOAT_SPEC = float_param("TST_FLT", 0.0, -1e6, 1e6)
@@ -251,6 +252,53 @@ def test_tlog_write_after_close_is_ignored(tmp_path) -> None:  # type: ignore[no
     w.close()
     w.write(0, b"\xfd\x00")
     assert w.frames == 0
+
+
+def test_tlog_through_the_log_service_is_written_by_its_thread_and_survives_restarts(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """In a runtime the link threads only queue tlog records; the service's writer thread
+    writes them, and a link thread restart (close, open) keeps appending to the same file."""
+    service = LogService(tmp_path)
+    service.start()
+    w = TlogWriter(tmp_path / "mavlink-0.tlog", service)
+    w.open()
+    mav = mavlink.MAVLink(None, 1, 1)
+    t0 = 1_700_000_000_000_000
+    w.write(t0, mavlink.MAVLink_heartbeat_message(1, 12, 0, 0, 4, 3).pack(mav))
+    w.close()
+    w.write(t0 + 500, mavlink.MAVLink_heartbeat_message(1, 12, 0, 0, 4, 3).pack(mav))  # ignored
+    w.open()
+    w.write(t0 + 1000, mavlink.MAVLink_attitude_message(1, 0.5, 0, 0, 0, 0, 0).pack(mav))
+    service.close()
+    assert w.frames == 2 and w.dropped == 0
+    log = mavutil.mavlink_connection(str(tmp_path / "mavlink-0.tlog"), dialect="common")
+    try:
+        types = []
+        while (m := log.recv_match()) is not None:
+            types.append(m.get_type())
+    finally:
+        log.close()
+    assert types == ["HEARTBEAT", "ATTITUDE"]
+
+
+def test_tlog_cut_short_by_a_crash_is_trimmed_to_whole_records(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    mav = mavlink.MAVLink(None, 1, 1)
+    one = struct.pack(">Q", 1) + mavlink.MAVLink_heartbeat_message(1, 12, 0, 0, 4, 3).pack(mav)
+    v1_heartbeat = b"\xfe\x09" + bytes(4) + bytes(9) + bytes(2)  # MAVLink 1: 6 + 9 + 2 bytes
+    two = struct.pack(">Q", 2) + v1_heartbeat
+    whole = one + two + one
+    assert tlog_length(whole) == len(whole)
+    for cut in range(len(whole)):
+        keep = tlog_length(whole[:cut])
+        assert keep in (0, len(one), len(one + two)) and keep <= cut
+    assert tlog_length(one + b"\x00" * 30) == len(one)  # not a frame: stop there
+    (tmp_path / "mavlink-0.tlog").write_bytes(whole[:-3])
+    service = LogService(tmp_path)
+    service.start()
+    w = TlogWriter(tmp_path / "mavlink-0.tlog", service)
+    w.open()
+    w.write(3, mavlink.MAVLink_heartbeat_message(1, 12, 0, 0, 4, 3).pack(mav))
+    service.close()
+    assert (tmp_path / "mavlink-0.tlog").read_bytes() == one + two + struct.pack(">Q", 3) + one[8:]
 
 
 # ------------------------------------------------------------------------------------ misc

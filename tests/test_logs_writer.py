@@ -392,3 +392,57 @@ def test_a_summary_write_on_a_hung_disk_does_not_hold_shutdown(tmp_path: Path,
         monkeypatch.setattr(os, "fsync", real_fsync)
     assert write_json_bounded(tmp_path / "other.json", {"b": 2}, 5.0)
     assert (tmp_path / "other.json").read_text().strip().endswith("}")
+
+
+def _log_many(svc: LogService, logs: int, records: int) -> None:
+    for i in range(logs):
+        lg = svc.open(f"t{i}")
+        lg.define(1, "%d", ["v"])
+        for v in range(records):
+            assert lg.log(1, v)
+
+
+def test_close_waits_for_a_slow_disk_that_still_makes_progress(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch
+                                                               ) -> None:
+    """Every write takes 0.15 s, eight files need 1.2 s: longer than the close's 0.5 s of
+    patience, but each write is progress, so every record reaches the disk."""
+    real = writer_mod._write_all
+
+    def slow(fd: int, data: bytes) -> int:
+        time.sleep(0.15)
+        return real(fd, data)
+
+    svc = LogService(tmp_path, clock_ns=FakeClock())
+    _log_many(svc, 8, 50)
+    monkeypatch.setattr(writer_mod, "_write_all", slow)
+    svc.start()
+    svc.close(timeout_s=0.5, max_s=20.0)
+    stats = svc.stats()
+    assert not stats["close_timed_out"] and stats["lost_at_close"] == 0
+    for i in range(8):
+        assert list(read_log(tmp_path / f"t{i}.bin").data(1)["v"]) == list(range(50))
+
+
+def test_close_gives_up_on_a_hung_disk_and_counts_what_it_lost(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch
+                                                              ) -> None:
+    release = threading.Event()
+    real = writer_mod._write_all
+
+    def hung(fd: int, data: bytes) -> int:
+        release.wait(10.0)
+        return real(fd, data)
+
+    svc = LogService(tmp_path, clock_ns=FakeClock())
+    _log_many(svc, 3, 20)  # 3 x (comment, definition, 20 records)
+    monkeypatch.setattr(writer_mod, "_write_all", hung)
+    svc.start()
+    try:
+        t0 = time.monotonic()
+        svc.close(timeout_s=0.3, max_s=20.0)
+        assert time.monotonic() - t0 < 3.0
+        stats = svc.stats()
+        assert stats["close_timed_out"] and stats["lost_at_close"] == 3 * 22
+    finally:
+        release.set()

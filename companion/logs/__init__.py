@@ -16,7 +16,7 @@ from companion.logs.reader import (
     read_log,
     read_log_bytes,
 )
-from companion.logs.writer import LogService, ThreadLog, write_run_json
+from companion.logs.writer import LogService, RawLog, ThreadLog, write_run_json
 
 __all__ = [
     "Damage",
@@ -26,6 +26,7 @@ __all__ = [
     "LogFormatError",
     "LogService",
     "Marker",
+    "RawLog",
     "Stream",
     "ThreadLog",
     "convert_file",

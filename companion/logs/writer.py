@@ -53,7 +53,7 @@ from companion.logs.records import (
     split_time_ns,
 )
 
-__all__ = ["LogService", "ThreadLog", "write_run_json"]
+__all__ = ["LogService", "RawLog", "ThreadLog", "write_run_json"]
 
 log = logging.getLogger(__name__)
 
@@ -131,15 +131,17 @@ def _csv_keep(data: bytes) -> int:
 
 
 class _BinarySink(_Sink):
-    def __init__(self, path: Path, label: str) -> None:
+    def __init__(self, path: Path, label: str,
+                 repair: Callable[[bytes], int] = framed_length) -> None:
         super().__init__(label)
         self.path = path
         self.fd: int | None = None
+        self._repair = repair
 
     def open(self) -> None:
         self.opened = True
         try:
-            self.fd = _open_append(self.path, repair=framed_length)
+            self.fd = _open_append(self.path, repair=self._repair)
             self.files = 1
         except OSError as exc:
             self._fail(self.path, exc)
@@ -430,6 +432,43 @@ class ThreadLog:
         return True
 
 
+class RawLog:
+    """A file of pre-formatted records written by the service's thread (a MAVLink .tlog).
+
+    Producers hand over whole records; like `ThreadLog.log`, `append` never blocks and never
+    touches the disk, so a slow or full disk costs records (counted), not a link's cycle.
+    """
+
+    def __init__(self, service: LogService, name: str, sink: _Sink) -> None:
+        self.name = name
+        self._sink = sink
+        self._queue = service._queue
+        self._capacity = service.capacity_records
+        self._high_water = max(1, service.capacity_records // 2)
+        self._wake = service._wake
+        self._dropped = 0
+
+    @property
+    def dropped(self) -> int:
+        """Records lost: full queue, logging off, or the service closed."""
+        return self._dropped + self._sink.lost
+
+    @property
+    def logging_off(self) -> bool:
+        return self._sink.off
+
+    def append(self, record: bytes) -> bool:
+        """Queue one record; False when it was dropped."""
+        queue = self._queue
+        if not self._sink.accepting or len(queue) >= self._capacity:
+            self._dropped += 1
+            return False
+        queue.append((self._sink, record))
+        if len(queue) > self._high_water:
+            self._wake.set()
+        return True
+
+
 class LogService:
     """All the logs of one runtime, and the one thread that writes them."""
 
@@ -454,10 +493,14 @@ class LogService:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._logs: dict[str, ThreadLog] = {}
+        self._raw: dict[str, RawLog] = {}
         self._sinks: list[_Sink] = []
         self._thread: threading.Thread | None = None
         self._closed = False
         self._close_timed_out = False
+        self._progress = 0  # batches written, for close() to tell a slow disk from a hung one
+        self._in_hand = 0  # records taken off the queue and not yet written
+        self._lost_at_close = 0
         #: Data records are refused (not queued, counted per log) while paused: an operator's
         #: "stop logging"; definitions and Begin/End markers still go through.
         self.paused = False
@@ -503,12 +546,39 @@ class LogService:
         self._wake.set()
         return thread_log
 
+    def open_raw(self, filename: str, *, repair: Callable[[bytes], int]) -> RawLog:
+        """A file in the flight directory for records formatted by the caller.
+
+        `repair` returns how many leading bytes of a file left by a crash are whole records,
+        so appending after a crash starts on a record boundary. Pausing the flight logs does
+        not pause raw logs: their owner decides (the MAVLink logging commands do both).
+        """
+        if not _NAME_RE.match(filename) or filename in (".", ".."):
+            raise ValueError(f"log file name {filename!r}: use letters, digits, '_', '-', '.'")
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("LogService is closed")
+            if filename in self._raw:
+                raise ValueError(f"log file {filename!r} is already open")
+            sink = _BinarySink(self.flight_dir / filename, filename, repair)
+            raw = RawLog(self, filename, sink)
+            self._raw[filename] = raw
+            self._sinks.append(sink)
+        self._wake.set()
+        return raw
+
     def set_paused(self, paused: bool) -> None:
         self.paused = paused
         log.info("logging %s", "paused" if paused else "resumed")
 
-    def close(self, timeout_s: float = 2.0) -> None:
-        """Write everything queued, close all files, stop the writer thread (bounded wait)."""
+    def close(self, timeout_s: float = 2.0, max_s: float = 30.0) -> None:
+        """Write everything queued, close all files, stop the writer thread (bounded wait).
+
+        The wait gives up after `timeout_s` without progress, or after `max_s` in all: a slow
+        disk that still takes writes gets its records written (a flight's logs are what it
+        was flown for), a hung one costs at most `timeout_s`. Records left unwritten are
+        counted in `stats()["lost_at_close"]`.
+        """
         with self._lock:
             if self._closed:
                 return
@@ -521,25 +591,36 @@ class LogService:
         if thread is None:
             self._final_pass()
             return
-        thread.join(timeout_s)
-        if thread.is_alive():
-            self._close_timed_out = True
-            log.warning(
-                "log writer did not finish within %.1f s; %d records still queued",
-                timeout_s,
-                len(self._queue),
-            )
+        start = last_progress_at = time.monotonic()
+        seen = self._progress
+        while True:
+            now = time.monotonic()
+            remaining = min(timeout_s - (now - last_progress_at), max_s - (now - start))
+            if remaining <= 0:
+                break
+            thread.join(min(remaining, 0.05))
+            if not thread.is_alive():
+                return
+            if self._progress != seen:
+                seen, last_progress_at = self._progress, time.monotonic()
+        self._close_timed_out = True
+        self._lost_at_close = len(self._queue) + self._in_hand
+        log.warning(
+            "log writer did not finish within %.1f s (%.1f s without progress); "
+            "%d records not written",
+            time.monotonic() - start, timeout_s, self._lost_at_close,
+        )
 
     def stats(self) -> dict[str, Any]:
         """Counters: written, dropped, rejected, bytes, files, queued, logging_off, reason."""
         with self._lock:
             sinks = list(self._sinks)
-            logs = list(self._logs.values())
+            logs: list[ThreadLog | RawLog] = [*self._logs.values(), *self._raw.values()]
         reasons = [s.reason for s in sinks if s.reason]
         return {
             "written": sum(s.written for s in sinks),
             "dropped": sum(lg.dropped for lg in logs),
-            "rejected": sum(lg.rejected for lg in logs),
+            "rejected": sum(lg.rejected for lg in logs if isinstance(lg, ThreadLog)),
             "bytes": sum(s.bytes for s in sinks),
             "files": sum(s.files for s in sinks),
             "queued": len(self._queue),
@@ -547,6 +628,7 @@ class LogService:
             "reason": "; ".join(reasons) if reasons else None,
             "running": self._thread is not None and self._thread.is_alive(),
             "close_timed_out": self._close_timed_out,
+            "lost_at_close": self._lost_at_close,
         }
 
     # -- writer thread -----------------------------------------------------------------------
@@ -560,12 +642,14 @@ class LogService:
         queue = self._queue
         pop = queue.popleft
         groups: dict[_Sink, list[bytes]] = {}
-        for _ in range(len(queue)):
+        taken = len(queue)
+        for _ in range(taken):
             sink, record = pop()
             batch = groups.get(sink)
             if batch is None:
                 batch = groups[sink] = []
             batch.append(record)
+        self._in_hand = taken
         for sink, batch in groups.items():
             if not sink.opened:
                 # opened by a producer after the snapshot above: open it now, or its first
@@ -579,6 +663,8 @@ class LogService:
                 sink.accepting = False
                 sink.reason = f"{sink.label}: internal error"
                 sink.lost += len(batch)
+            self._in_hand -= len(batch)
+            self._progress += 1
         callback = self.on_log_off
         for sink in groups:
             if sink.off and id(sink) not in self._reported_off:
