@@ -12,13 +12,15 @@ rates held, restarts (none intended), records dropped per log, whether the runti
 how long after the flight's end the process took to exit (a slow disk must not hang the
 shutdown), and which logs read back from the backing directory afterwards.
 
-Why these two: the runtime's log writer never fsyncs its logs (it leaves them to the kernel),
+Why these: the runtime's log writer never fsyncs its logs (it leaves them to the kernel),
 but run.json and summary.json are written atomically with two fsyncs each, so a slow disk
 shows up in the shutdown; a read-only disk fails every write of files that are already open,
 which the writer must turn into "logging off", not a crash or a restart.
 
-`row_slow_write` (every write request slow) is the third switch FaultFs has; it is not in the
-campaign's rows yet because it finds a runtime fault (see its figures) rather than measuring.
+`row_slow_write` (every write request slow) is the third: every thread that wrote to the disk
+itself waited for it (the MAVLink threads wrote the .tlog and missed their watchdog; the
+.tlog now goes through the log writer), and the log writer's close shows whether a slow disk
+still gets every record written.
 
 Without FUSE (no /dev/fuse, no mfusepy, no libfuse, no permission) a row says "skipped: ...".
 """
