@@ -223,7 +223,7 @@ def row_device(d: float, dev: str, spec: str, label: str, gap: bool = False) -> 
             f"{k} {v}" for k, v in counters.items()
             if v and k in ("bad_checksum", "bad_field", "resyncs", "bytes_discarded", "cut",
                            "malformed", "frames_good", "sentences_good", "epochs", "repeated",
-                           "utc_jumps", "missed_answers"))
+                           "utc_jumps", "late_epochs", "missed_answers"))
         injected = s.get("simulator", {}).get("faults", {}).get(dev, {})
         figs["injected"] = ", ".join(f"{k} {v}" for k, v in injected.items()
                                      if v and k != "chunks") or "-"

@@ -154,6 +154,11 @@ class Runtime:
                     bridge.close()
                 except Exception:
                     log.exception("closing %s after a failed start", type(bridge).__name__)
+            if not dry and self.opts.flight_dir is None:
+                # a start refused (a bad key file, a port in use) is not a flight: leave no
+                # empty directory for the log tools and the ground stations to list
+                with contextlib.suppress(OSError):
+                    self.flight_dir.rmdir()
             raise
         self.events = self.manager.subscribe_events(capacity=10_000)
         self.event_log: list[dict[str, Any]] = []

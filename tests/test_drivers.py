@@ -326,3 +326,13 @@ def test_gps_copies_are_dropped_and_a_utc_jump_is_told_but_midnight_is_not() -> 
     assert epoch(86400.1 + 3600.0, 0.3) == 1  # the receiver's clock steps an hour
     assert gps.utc_jumps == 1 and any("UTC jumped +3600.0 s" in t for t in told)
     assert gps.counters()["repeated"] == 1 and gps.counters()["utc_jumps"] == 1
+    # the process was suspended 5 s: the epochs waiting in the port arrive at once, one
+    # receiver epoch apart; late data, not a jump of the receiver's clock
+    assert epoch(86400.2 + 3600.0, 5.3) == 1
+    for k in range(1, 50):
+        assert epoch(86400.2 + 3600.0 + 0.1 * k, 5.3 + 0.001 * k) == 1
+    assert gps.utc_jumps == 1 and gps.late_epochs == 1
+    assert any("arrived 4.9 s late" in t for t in told)
+    assert epoch(86400.2 + 3600.0 + 10.0, 10.3) == 1  # silent 5 s, then on time again
+    assert epoch(100.0, 10.4) == 1  # a reset: the receiver's clock goes back
+    assert gps.utc_jumps == 2 and gps.counters()["late_epochs"] == 1

@@ -183,3 +183,19 @@ def test_the_gps_log_format_is_the_fix_record_itself() -> None:
     assert values[:3] == (1.5, 43.0, 10.0) and values[3] != values[3]  # NaN for a missing float
     assert values[4:6] == (1, 0) and values[-1] == pytest.approx(50.0)
     assert re.fullmatch(r"[a-z_]+", "_".join(layout.names))
+
+
+def test_a_start_refused_by_a_bad_key_file_leaves_no_empty_flight_directory(
+        tmp_path: Path) -> None:
+    from gcs_bridge.signing import KeyFileError
+
+    key = tmp_path / "mavlink.key"
+    key.write_text("ab" * 32 + "\n")
+    os.chmod(key, 0o644)  # readable by others: refused
+    cfg = Config()
+    cfg.logs.dir = str(tmp_path / "flights")
+    cfg.mavlink.key_file = str(key)
+    cfg.legacy.enabled = False
+    with pytest.raises(KeyFileError, match="chmod 600"):
+        Runtime(cfg, RuntimeOptions())
+    assert not any((tmp_path / "flights").iterdir())

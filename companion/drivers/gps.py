@@ -54,12 +54,15 @@ class GpsDriver(SerialDevice):
         super().__init__(task, url=url, baudrate=baudrate, read_timeout_s=0.02)
         self.decoder = self._new_decoder(allow_no_checksum=False, idle_ms=20)
         self._last_utc_s: float | None = None
-        self._utc_offset_s: float | None = None
+        self._last_epoch: tuple[float, int] | None = None  # (receiver UTC s, arrival ns)
         self.repeated = 0
         """Epochs with the UTC of the epoch before: a receiver sending copies, not fixes."""
         self.utc_jumps = 0
         """Times the receiver's UTC moved against the computer's clock by more than
         UTC_JUMP_S between two epochs (a receiver reset, a leap second, a week rollover)."""
+        self.late_epochs = 0
+        """Epochs that arrived more than UTC_JUMP_S later than the receiver's clock says, after
+        epochs that waited in the port's buffer (the process was suspended or starved)."""
 
     @staticmethod
     def _new_decoder(*, allow_no_checksum: bool, idle_ms: int, pashr: bool = False) -> NmeaDecoder:
@@ -125,21 +128,30 @@ class GpsDriver(SerialDevice):
 
     def _check_utc(self, utc_s: float, t_ns: int) -> None:
         """Nothing on board steers by the receiver's UTC (every timestamp is the computer's
-        clock), so a jump costs nothing but a confusing log: say so when it happens. Epochs
-        that waited in the port's buffer (the process was suspended) move it too: late data
-        is worth a notice as well."""
-        offset = utc_s - t_ns / 1e9
-        previous, self._utc_offset_s = self._utc_offset_s, offset
+        clock), so a jump costs nothing but a confusing log: say so when it happens.
+
+        A jump is the receiver's clock moving backwards, or forwards by more than the time
+        that passed between the two epochs' arrivals. Epochs that waited in the port's buffer
+        (the process was suspended) arrive later than their UTC says but one epoch apart: that
+        is late data, counted as such (`late_epochs`), not a jump of the receiver's clock."""
+        previous = self._last_epoch
+        self._last_epoch = (utc_s, t_ns)
         if previous is None:
             return
-        delta = (offset - previous + 43200.0) % 86400.0 - 43200.0  # across midnight
-        if abs(delta) > UTC_JUMP_S:
+        utc_step = (utc_s - previous[0] + 43200.0) % 86400.0 - 43200.0  # across midnight
+        arrival_step = (t_ns - previous[1]) / 1e9
+        if utc_step < -UTC_JUMP_S or utc_step > arrival_step + UTC_JUMP_S:
             self.utc_jumps += 1
-            self.notice(f"receiver UTC jumped {delta:+.1f} s against the clock", key="utc")
+            self.notice(f"receiver UTC jumped {utc_step - arrival_step:+.1f} s against the clock",
+                        key="utc")
+        elif utc_step < arrival_step - UTC_JUMP_S:
+            self.late_epochs += 1
+            self.notice(f"epochs arrived {arrival_step - utc_step:.1f} s late (buffered)",
+                        key="late")
 
     def counters(self) -> dict[str, int]:
         out = super().counters()
-        out.update(repeated=self.repeated, utc_jumps=self.utc_jumps)
+        out.update(repeated=self.repeated, utc_jumps=self.utc_jumps, late_epochs=self.late_epochs)
         c = self.decoder.counters
         out.update({k: getattr(c, k) for k in (
             "sentences_good", "bad_checksum", "unknown", "too_long", "cut", "malformed", "late",
