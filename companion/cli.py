@@ -107,6 +107,7 @@ def _add_params(sub: argparse._SubParsersAction) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from companion.core.clock import every
     from companion.runtime import Runtime, RuntimeOptions, status_line
+    from companion.watchdog.manager import EXIT_ESCALATED
 
     cfg = config_from_args(args)
     if args.imu:
@@ -127,6 +128,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         if sys.stderr.isatty():
             print(file=sys.stderr)
         print_summary(rt.summary(), args.json)
+        if rt.manager.escalated is not None:
+            print(f"error: thread {rt.manager.escalated} failed (restart intensity exceeded); "
+                  f"exiting with {EXIT_ESCALATED} for the service manager to restart the runtime",
+                  file=sys.stderr)
+            return EXIT_ESCALATED
         if reason != "reboot":
             return 0
         print("reboot requested: restarting the runtime", file=sys.stderr)
@@ -188,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     _provider("horizon.cli", "add_commands")(horizon_sub, rerun_frames=_rerun_frames)
 
     _provider("gcs_bridge.cli", "add_commands")(sub)
+    _provider("companion.deploy", "add_commands")(sub)
     return parser
 
 

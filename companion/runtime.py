@@ -25,6 +25,7 @@ from companion.core.files import write_json_bounded
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
 from companion.drivers.registry import DEVICES, make_driver
+from companion.service import ServiceNotifications
 from companion.tasks import VEHICLE_TASKS
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, Task, ThreadManager
 from companion.watchdog.manager import MANAGER_PARAMS
@@ -160,6 +161,8 @@ class Runtime:
                 with contextlib.suppress(OSError):
                     self.flight_dir.rmdir()
             raise
+        self.service = ServiceNotifications(self.manager)
+        self.manager.on_tick.append(self.service.tick)
         self.events = self.manager.subscribe_events(capacity=10_000)
         self.event_log: list[dict[str, Any]] = []
         self.manager.on_tick.append(self._collect_events)
@@ -237,6 +240,7 @@ class Runtime:
                                    "detail": e.detail, "severity": e.severity})
 
     def shutdown(self) -> None:
+        self.service.stopping(self.manager.stop_reason or "stop")
         self.manager.shutdown()
         self._collect_events()
         for bridge in self.bridges:
@@ -274,6 +278,7 @@ class Runtime:
         return {
             "flight_dir": str(self.flight_dir),
             "stop_reason": self.manager.stop_reason,
+            "escalated": self.manager.escalated,
             "threads": [
                 {"name": s.name, "cycles": s.cycles, "restarts": s.restarts, "stalls": s.stalls,
                  "failed": s.failed, "rate_hz": round(s.measured_rate_hz, 2),

@@ -19,20 +19,20 @@ __all__ = ["VEHICLE_TASKS", "task"]
 VEHICLE_TASKS: dict[str, Task] = {t.name: t for t in (
     Task("imu", thread_id=1, paced_by="IMU frames (100 Hz)", budget_ms=2.0,
          watchdog_ms=500, message_ms=1000, restart=RestartType.TRANSIENT,
-         implementation="companion.drivers.imu:ImuDriver"),
+         escalate=True, implementation="companion.drivers.imu:ImuDriver"),
     Task("gps", thread_id=2, paced_by="GPS epochs (10 Hz)", budget_ms=5.0,
          watchdog_ms=1000, message_ms=1000, restart=RestartType.TRANSIENT,
-         implementation="companion.drivers.gps:GpsDriver"),
+         escalate=True, implementation="companion.drivers.gps:GpsDriver"),
     # A lost exchange is a lost command: catch up to three periods after a hiccup.
     Task("servo", thread_id=3, period_ms=20.0, budget_ms=15.0, max_catch_up=3,
          watchdog_ms=500, message_ms=1000, restart=RestartType.TRANSIENT,
-         implementation="companion.drivers.servo:ServoDriver"),
+         escalate=True, implementation="companion.drivers.servo:ServoDriver"),
     Task("estimator", thread_id=4, paced_by="IMU samples (imu_stream)", budget_ms=3.0,
          watchdog_ms=1000, message_ms=1000, param_prefix="EST", restart=RestartType.TRANSIENT,
-         implementation="companion.estimation.thread:EstimatorThread"),
+         escalate=True, implementation="companion.estimation.thread:EstimatorThread"),
     Task("control", thread_id=5, paced_by="estimates (state.estimator)", budget_ms=2.0,
          watchdog_ms=1000, message_ms=1000, param_prefix="CTL", restart=RestartType.TRANSIENT,
-         implementation="companion.control:ControlThread"),
+         escalate=True, implementation="companion.control:ControlThread"),
 )}
 
 

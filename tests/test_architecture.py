@@ -21,8 +21,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("flight", ("companion.tasks", "companion.drivers", "companion.estimation",
                 "companion.control")),
     ("bridges", ("gcs_bridge", "legacy_protocol")),
-    ("app", ("companion.runtime", "companion.docgen", "companion.cli_common")),
-    ("tools", ("companion.sim", "companion.evaluation", "companion.report", "companion.liveview")),
+    ("app", ("companion.runtime", "companion.service", "companion.docgen",
+             "companion.cli_common")),
+    ("tools", ("companion.sim", "companion.evaluation", "companion.report", "companion.liveview",
+               "companion.deploy")),
     ("cli", ("companion.cli", "companion.__main__")),
 ]
 STANDALONE = "horizon"  # a library of its own: it imports nothing of the other packages

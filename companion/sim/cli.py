@@ -64,6 +64,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if sys.stderr.isatty():
         print(file=sys.stderr)
     print_summary(summary, args.json)
+    if summary.get("escalated"):
+        from companion.watchdog.manager import EXIT_ESCALATED
+
+        print(f"companion sim: thread {summary['escalated']} failed and escalated "
+              f"(exit {EXIT_ESCALATED})", file=sys.stderr)
+        return EXIT_ESCALATED
     return 0
 
 

@@ -24,6 +24,7 @@ class EventKind(enum.Enum):
     RESUMED = "resumed"  # the whole process was suspended (SIGSTOP, a VM pause): windows restart
     LOG_OFF = "logging off"  # a thread's log could not be written (disk full): the thread flies on
     NOTICE = "notice"  # a thread saw something wrong in its input and coped (a device flooding)
+    ESCALATED = "escalated"  # a failed thread takes the process down for its service manager
 
 
 # MAVLink MAV_SEVERITY values, so bridges need no table of their own.
@@ -44,6 +45,7 @@ SEVERITY = {
     EventKind.RESUMED: 4,
     EventKind.LOG_OFF: 3,
     EventKind.NOTICE: 4,
+    EventKind.ESCALATED: 1,
 }
 
 

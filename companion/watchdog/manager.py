@@ -12,7 +12,8 @@ seen at the previous check (the alive flag, tested and reset):
 
 Restart policy uses Erlang/OTP's terms: restart type per thread, and an intensity (at most
 `MGR_RST_INTENS` restarts within `MGR_RST_PER_S`) beyond which the thread is marked failed and
-left down while the others keep running.
+left down while the others keep running, or, for a thread whose row says `escalate`, the whole
+runtime stops with EXIT_ESCALATED for its service manager to restart (MGR_ESCALATE).
 
 Size: one class holding one state machine (start, check, restart, stop, suspend), with its
 parameters and rules; split over files it would be harder to read, not easier.
@@ -40,6 +41,11 @@ from companion.watchdog.thread import (
 
 log = logging.getLogger(__name__)
 
+EXIT_ESCALATED = 70
+"""Process exit status after an escalation (EX_SOFTWARE in sysexits.h): not 0, so that
+systemd's Restart=on-failure restarts the process, and not 1 or 2, so that it is told apart
+from a crash or a bad configuration."""
+
 THREAD_ID_MAX = 255
 """Ids fit the legacy protocol's uint8 thread id field."""
 FIRST_ASSIGNED_ID = 6
@@ -66,6 +72,16 @@ MANAGER_PARAMS: list[ParamSpec] = [
               "Restart intensity: more restarts than this within MGR_RST_PER_S marks a thread failed."),
     int_param("MGR_RST_PER_S", 30, 1, 86_400, "s",
               "Restart intensity period, in seconds."),
+    int_param("MGR_ESCALATE", 1, 0, 2, "",
+              "When a flight thread fails (restart intensity exceeded): 0 leaves it down and "
+              "flies on; 1 stops the runtime with exit code 70 so that a service manager "
+              "(systemd) restarts the process, when one supervises it, else as 0; 2 always "
+              "stops with exit code 70. Threads fed by the network never escalate."),
+    int_param("MGR_READY_S", 30, 1, 3600, "s",
+              "Under a service manager: READY is sent once every thread has reached its "
+              "periodic section, or after this many seconds (host time) with the threads still "
+              "starting named in the status, so that a missing device is reported to the "
+              "ground stations rather than the process being killed for a slow start."),
     int_param("MGR_SHUTDOWN_MS", 500, 10, 60_000, "ms",
               "How long a stopping thread may take before it is interrupted, then abandoned "
               "(host time: not scaled by the simulation's --speed)."),
@@ -119,6 +135,10 @@ class ThreadManager:
         self._restart_times: dict[str, deque[float]] = {}
         self._abandoned_workers: list[threading.Thread] = []
         self._started = False
+        #: Set by the runtime when a service manager will restart the process (MGR_ESCALATE 1).
+        self.supervised = False
+        #: The thread whose failure stopped the runtime, once it has escalated.
+        self.escalated: str | None = None
         self.on_tick: list[Callable[[], None]] = []  # called every wake, in the main thread
         ctx.params.declare_all(MANAGER_PARAMS)
         for t in self.threads:
@@ -190,6 +210,11 @@ class ThreadManager:
 
     def thread_status(self) -> list[ThreadStatus]:
         return [t.status() for t in self.threads]
+
+    def silent_threads(self) -> list[str]:
+        """Threads whose device or input is quiet at the last check (reported `silent`, not
+        yet `recovered`)."""
+        return [t.name for t in self.threads if self._silent.get(t.name) and not t.failed]
 
     def status(self) -> ManagerStatus:
         p = self.ctx.params
@@ -380,6 +405,7 @@ class ThreadManager:
             t.failed = True
             self._emit(EventKind.FAILED, t.name,
                        f"{len(times) + 1} restarts within {period_s} s; left down")
+            self._maybe_escalate(t)
             return
         times.append(now)
         self._stop_thread(t, why=why)
@@ -390,6 +416,16 @@ class ThreadManager:
         t.restarts += 1
         if self._start_thread(t):
             self._emit(EventKind.RESTARTED, t.name, why)
+
+    def _maybe_escalate(self, t: ManagedThread) -> None:
+        mode = int(self.ctx.params.get("MGR_ESCALATE"))
+        if not t.escalate or mode == 0 or (mode == 1 and not self.supervised):
+            return
+        if self.escalated is None:
+            self.escalated = t.name
+            self._emit(EventKind.ESCALATED, t.name,
+                       f"runtime stops (exit {EXIT_ESCALATED}) for a restart of the process")
+            self.request_stop(f"escalated: {t.name} failed")
 
     def _rebase(self, gap_s: float) -> None:
         """The manager itself did not run for `gap_s` (the process was stopped, the machine

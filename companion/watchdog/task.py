@@ -65,6 +65,11 @@ class Task:
     """Prefix of the thread's parameters; empty: the name, upper case, cut to 6 letters."""
     implementation: str = ""
     """``module:Class`` of the thread, so its parameters can be listed without building it."""
+    escalate: bool = False
+    """True: when this thread fails (restart intensity exceeded), the runtime stops and exits
+    with EXIT_ESCALATED so that its service manager restarts the whole process, as an OTP
+    supervisor escalates to its parent (see MGR_ESCALATE). For the vehicle's own threads; never
+    for a thread that the network feeds, or network input could restart the aircraft."""
     switchable: bool = True
     """False: `<PREFIX>_ENABLE` is read-only. For the threads that carry a ground link: a ground
     station (or anyone on an unsigned link) that switched them off would leave the aircraft

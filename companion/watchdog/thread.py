@@ -120,6 +120,7 @@ class ManagedThread:
         self.shutdown_timeout_ms = task.shutdown_timeout_ms
         self.param_prefix = task.param_prefix
         self.restart = task.restart
+        self.escalate = task.escalate
         self.max_catch_up = task.max_catch_up
         self.ctx: RuntimeContext = RuntimeContext()
         self.tlog: Any = None  # the thread's ThreadLog, if the subclass declares formats
