@@ -7,7 +7,8 @@ Install writes four things and says each one:
   ``Restart=on-failure`` within a start limit, ``WatchdogSec``; exit status 2 (a bad
   configuration) is not restarted, 70 (a flight thread escalated) is;
 - ``/etc/companion/companion.toml``: the configuration the runtime reads, kept if it exists;
-- ``/var/lib/companion/``: the working and data directory (flights, the parameter file);
+- ``/var/lib/companion/``: the working and data directory (flights, and the parameter file,
+  which turns the disk policy on: LOG_MIN_FREE_MB 500);
 - ``/etc/udev/rules.d/99-companion.rules``: example rules that give the IMU, GPS and servo
   board stable names (``/dev/companion-imu`` ...), to be filled in with the devices' serial
   numbers (docs/deploy.md says how), so they do nothing until edited.
@@ -67,6 +68,13 @@ class InstallPlan:
     def installed_path(self, p: Path) -> Path:
         """Where `p` is on the running system (the unit names paths without the prefix)."""
         return Path("/") / p.relative_to(self.prefix)
+
+
+PARAMS_TEXT = """\
+# Parameters of the installed runtime (MAVProxy .parm format); ground stations change them.
+LOG_MIN_FREE_MB 500
+LOG_MAX_FLIGHTS 0
+"""
 
 
 def _exec_start() -> list[str]:
@@ -194,11 +202,15 @@ def cmd_install(args: argparse.Namespace) -> int:
         if not dry and not d.exists():
             d.mkdir(parents=True)
             created.append(str(d) + "/")
+        if not dry and os.getuid() == 0:
+            entry = pwd.getpwnam(plan.user)
+            os.chown(d, entry.pw_uid, entry.pw_gid)
+    # the disk policy on: an aircraft's card must not fill up over a season
+    _write(plan.data_dir / "params.parm", PARAMS_TEXT, created, dry, keep=True)
     if not dry:
         if os.getuid() == 0:
             entry = pwd.getpwnam(plan.user)
-            for d in (plan.data_dir, plan.data_dir / "flights"):
-                os.chown(d, entry.pw_uid, entry.pw_gid)
+            os.chown(plan.data_dir / "params.parm", entry.pw_uid, entry.pw_gid)
         manifest = plan.data_dir / MANIFEST
         old = json.loads(manifest.read_text()) if manifest.exists() else []
         manifest.write_text(json.dumps(sorted(set(old) | set(created)), indent=1) + "\n")
@@ -230,6 +242,8 @@ def cmd_uninstall(args: argparse.Namespace) -> int:
             if not dry:
                 shutil.rmtree(path, ignore_errors=True)
         elif path.exists():
+            if keep_data and path.is_relative_to(plan.data_dir):
+                continue  # the parameters, with the flights
             print(f"{'would remove' if dry else 'removed'}  {path}")
             if not dry:
                 path.unlink()

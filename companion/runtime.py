@@ -25,6 +25,7 @@ from companion.core.files import write_json_bounded
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
 from companion.drivers.registry import DEVICES, make_driver
+from companion.logs.retention import DiskPolicy, FlightLock
 from companion.service import ServiceNotifications
 from companion.tasks import VEHICLE_TASKS
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, Task, ThreadManager
@@ -38,6 +39,13 @@ SUMMARY_WRITE_TIMEOUT_S = 2.0  # host seconds shutdown waits for summary.json on
 RUNTIME_PARAMS: list[ParamSpec] = [
     int_param("LOG_TEXT", 0, 0, 1, "",
               "1 writes CSV text logs (one file per format) instead of binary logs.", reboot=True),
+    int_param("LOG_MIN_FREE_MB", 0, 0, 10_000_000, "MB",
+              "Disk policy: delete the oldest finished flights (never the current one) while "
+              "less than this is free on the logs' disk; checked at start and every 10 s. "
+              "0 = off (`companion install` sets 500)."),
+    int_param("LOG_MAX_FLIGHTS", 0, 0, 1_000_000, "",
+              "Disk policy: keep at most this many flight directories (the current one "
+              "included), deleting the oldest finished ones. 0 = no limit."),
     int_param("SYS_VEHICLE_ID", 1, 1, 255, "",
               "MAVLink system id and legacy vehicle id (from the configuration).", read_only=True),
 ]
@@ -133,6 +141,10 @@ class Runtime:
             self.flight_dir.mkdir(parents=True, exist_ok=True)
         self.logs: Any = None
         self._log_stats: dict[str, Any] = {}
+        # held while this runtime writes the flight: the disk policy of another runtime
+        # sharing the logs directory (a fleet) never deletes it
+        self._flight_lock = None if dry else FlightLock(self.flight_dir)
+        self.disk_policy: DiskPolicy | None = None
         if cfg.logs.enabled and not dry:
             from companion.logs import LogService
 
@@ -209,6 +221,15 @@ class Runtime:
         # Device threads wait for the GIL after their read returns; CPython's default 5 ms
         # switch interval would make that wait longer than a servo period at 5x simulation.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+        if not self.opts.dry:
+            params = self.ctx.params
+            self.disk_policy = DiskPolicy(
+                self.flight_dir.parent, self.flight_dir,
+                lambda: (float(params.get("LOG_MIN_FREE_MB")), int(params.get("LOG_MAX_FLIGHTS"))),
+                on_delete=lambda d: self.manager.report(
+                    EventKind.NOTICE, "logs",
+                    f"deleted flight {d.path.name} ({d.size_mb:.0f} MB): {d.reason}"))
+            self.disk_policy.start()
         if self.logs is not None:
             from companion.logs import write_run_json
 
@@ -248,10 +269,14 @@ class Runtime:
                 bridge.close()
             except Exception:
                 log.exception("closing bridge %s", type(bridge).__name__)
+        if self.disk_policy is not None:
+            self.disk_policy.stop()
         if self.logs is not None:
             self.logs.close()
             self._log_stats = self.logs.stats()
             self.logs = None
+        if self._flight_lock is not None:
+            self._flight_lock.release()
         if not self.opts.dry and self._started:
             write_json_bounded(self.flight_dir / "summary.json", self.summary(),
                                SUMMARY_WRITE_TIMEOUT_S)
@@ -296,6 +321,9 @@ class Runtime:
             # the writer's own account: records dropped in flight and left unwritten at the
             # end (a disk too slow to finish within the close's patience), files logging off
             "logs": {k: v for k, v in self._log_stats.items() if k != "running"},
+            "disk_policy_deleted": [
+                {"flight": d.path.name, "size_mb": round(d.size_mb, 1), "reason": d.reason}
+                for d in (self.disk_policy.deleted if self.disk_policy is not None else [])],
         }
 
 
