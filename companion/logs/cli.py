@@ -47,10 +47,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
 
-    e = sub.add_parser("export", help="export to Parquet (one file per format) or one .npz")
-    e.add_argument("path", type=Path, metavar="FILE",
-                   help="a log file, or a flight archive (every log in it)")
-    e.add_argument("--to", choices=("parquet", "npz"), required=True)
+    e = sub.add_parser("export", help="export to Parquet (one file per format) or one .npz; "
+                       "--dataset: many flights as one Parquet dataset")
+    e.add_argument("path", type=Path, metavar="FILE", nargs="+",
+                   help="a log file, or a flight archive (every log in it); with --dataset: "
+                   "flight directories, archives, or directories of flights")
+    e.add_argument("--to", choices=("parquet", "npz"), help="required without --dataset")
+    e.add_argument("--dataset", type=Path, metavar="DIR",
+                   help="write every stream of every FLIGHT into the hive-partitioned Parquet "
+                   "dataset DIR, with the tables flights and restarts (docs/logs.md)")
     e.add_argument(
         "-o",
         "--out",
@@ -60,6 +65,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     )
     e.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
     e.set_defaults(func=cmd_export)
+
+    q = sub.add_parser("query", help="SQL (DuckDB) over a dataset written by export --dataset")
+    q.add_argument("dataset", type=Path, metavar="DIR")
+    q.add_argument("sql", metavar="SQL",
+                   help="views: flights, restarts, and one per stream (e.g. imu_fmt1)")
+    how = q.add_mutually_exclusive_group()
+    how.add_argument("--csv", action="store_true", help="CSV output (every row)")
+    how.add_argument("--json", action="store_true", help="JSON output (every row)")
+    q.set_defaults(func=cmd_query)
 
 
 def flight_of_archive(path: Path) -> Path | None:
@@ -284,13 +298,19 @@ def _key(index: int, number: int) -> str:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    if not is_archive(args.path):
-        return _export_one(args.path, args.to, args.out, args.salvage)
-    files, ok = _log_inputs([args.path])
+    if args.dataset is not None:
+        return _export_dataset(args.path, args.dataset)
+    if args.to is None or len(args.path) != 1:
+        print("error: export takes one FILE and --to, or FLIGHT... and --dataset", file=sys.stderr)
+        return 2
+    path: Path = args.path[0]
+    if not is_archive(path):
+        return _export_one(path, args.to, args.out, args.salvage)
+    files, ok = _log_inputs([path])
     if not ok:
         return 1
     if not files:
-        print(f"error: {args.path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
+        print(f"error: {path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
         return 1
     # several logs: -o names a directory for npz too (one <log>.npz in it per log)
     npz_dir: Path | None = args.out if args.out is not None and args.to == "npz" else None
@@ -298,7 +318,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         try:
             npz_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            print(f"error: export of {args.path}: {exc}", file=sys.stderr)
+            print(f"error: export of {path}: {exc}", file=sys.stderr)
             return 1
     status = 0
     for path in files:
@@ -326,27 +346,57 @@ def _export_one(path: Path, to: str, out_arg: Path | None, salvage: bool) -> int
             np.savez(out, **arrays)  # type: ignore[arg-type]
             print(out)
             return 0
-        import pyarrow as pa
         import pyarrow.parquet as pq
+
+        from companion.logs.dataset import stream_table
 
         out_dir = out_arg or path.parent
         out_dir.mkdir(parents=True, exist_ok=True)
         for s in lf.streams:
-            frame = s.to_pandas()
-            if s.kind == "block":
-                frame.insert(1, "time_ns", s.time_ns)
-            table = pa.Table.from_pandas(frame, preserve_index=False)
-            meta = dict(table.schema.metadata or {})
-            meta[b"uavlog"] = json.dumps(
-                {"index": s.index, "kind": s.kind, "format": s.format, "columns": list(s.columns)}
-            ).encode()
-            table = table.replace_schema_metadata(meta)
             target = out_dir / csv_name(stem, s.index, s.number).replace(".csv", ".parquet")
-            pq.write_table(table, target)
+            pq.write_table(stream_table(s), target)
             print(target)
     except OSError as exc:
         print(f"error: export of {path}: {exc}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _export_dataset(paths: list[Path], dataset: Path) -> int:
+    """``export --dataset``: each flight as far as it reads; exit 1 when one had problems."""
+    from companion.logs.dataset import export_flight, flight_dirs
+
+    status = 0
+    for given in paths:
+        flight = flight_of_archive(given) if is_archive(given) else given
+        if flight is None or not flight.is_dir():
+            if flight is not None:
+                print(f"error: {given}: not a flight directory or archive", file=sys.stderr)
+            status = 1
+            continue
+        for d in flight_dirs(flight):
+            try:
+                done = export_flight(d, dataset)
+            except OSError as exc:
+                print(f"error: export of {d} into {dataset}: {exc}", file=sys.stderr)
+                status = 1
+                continue
+            print(f"{done.partition} ({done.streams} streams, {done.records} rows)")
+            for p in done.problems:
+                print(f"warning: {d}: {p}", file=sys.stderr)
+            status |= 1 if done.problems else 0
+    return status
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    from companion.logs.dataset import QueryError, query, render
+
+    try:
+        columns, rows = query(args.dataset, args.sql)
+    except QueryError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(render(columns, rows, "csv" if args.csv else "json" if args.json else "table"))
     return 0
 
 
