@@ -11,6 +11,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from companion.cli_common import config_from_args, print_summary
     from companion.core.clock import every
     from companion.runtime import status_line
+
+    try:
+        import jsbsim  # noqa: F401
+    except ImportError:
+        # on an aircraft's computer JSBSim is not needed (and has no aarch64 wheel)
+        print("companion sim: the flight model needs JSBSim, which is not installed: "
+              "pip install 'uav-companion[sim]' (docs/deploy.md)", file=sys.stderr)
+        return 2
     from companion.sim.runner import FAST_SCALE, SimError, SimOptions, run_fleet, run_sim
     from companion.sim.scenarios import SCENARIOS
 

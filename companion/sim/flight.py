@@ -182,6 +182,20 @@ def _finite(name: str, value: float) -> float:
     return value
 
 
+def jsbsim_root_dir() -> str:
+    """The directory of the aircraft and engine definitions that the jsbsim package ships.
+
+    They sit beside the imported module (``jsbsim/aircraft``, ``jsbsim/engine``).
+    ``jsbsim.get_default_root_dir()`` looks only in the interpreter's site-packages
+    directories (``site.getsitepackages()``, the user site), so it fails when jsbsim is
+    imported from anywhere else: ``pip install --target``, PYTHONPATH, a ``.pth`` path line.
+    """
+    here = os.path.dirname(os.path.abspath(jsbsim.__file__ or ""))
+    if os.path.isdir(os.path.join(here, "aircraft")):
+        return here
+    return str(jsbsim.get_default_root_dir())
+
+
 def resolve_aircraft(aircraft: str | AircraftSpec) -> AircraftSpec:
     """Look an aircraft up by name (case-insensitive), or pass a spec through."""
     if isinstance(aircraft, AircraftSpec):
@@ -303,7 +317,7 @@ class FlightModel:
     def _load(self, root_dir: str | None) -> jsbsim.FGFDMExec:
         # JSBSim's banner and per-step chatter go to the C++ stdout; the level is process-wide.
         jsbsim.FGJSBBase().debug_lvl = 0
-        root = root_dir if root_dir is not None else jsbsim.get_default_root_dir()
+        root = root_dir if root_dir is not None else jsbsim_root_dir()
         model_dir = os.path.join(root, "aircraft", self.spec.jsbsim_model)
         if not os.path.isdir(model_dir):
             raise FlightModelError(
