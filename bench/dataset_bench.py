@@ -78,7 +78,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flights", type=int, default=100)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="10 flights, one repeat (a smoke run)")
     args = ap.parse_args()
+    if args.quick:
+        args.flights, args.repeat = 10, 1
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="dataset-bench-") as tmp:
         work = Path(tmp)

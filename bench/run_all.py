@@ -33,6 +33,8 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("estimation_sitl", []),
     ("horizon", []),
     ("report", []),
+    ("dataset", []),
+    ("fleet_router", []),
 ]
 
 

@@ -167,6 +167,8 @@ class Runtime:
                     bridge.close()
                 except Exception:
                     log.exception("closing %s after a failed start", type(bridge).__name__)
+            if self._flight_lock is not None:
+                self._flight_lock.release()
             if not dry and self.opts.flight_dir is None:
                 # a start refused (a bad key file, a port in use) is not a flight: leave no
                 # empty directory for the log tools and the ground stations to list

@@ -69,7 +69,7 @@ class Fleet:
     runtime and world it started); output in files under `root`, which is also its working
     directory (run_fleet's parameter files `params-v<id>.parm` are relative to it)."""
 
-    def __init__(self, root: Path, endpoint: str, vehicles: int) -> None:
+    def __init__(self, root: Path, endpoint: str, vehicles: int, *extra: str) -> None:
         self.root = root
         self.flights = root / "flights"
         self.err_path = root / "fleet.stderr"
@@ -77,7 +77,8 @@ class Fleet:
         cmd = [sys.executable, "-m", "companion", "sim", "--vehicles", str(vehicles), "--fast",
                "--duration", str(FLIGHT_S), "--scenario", "level", "--seed", "1", "--json",
                "--log-dir", str(self.flights), "--mavlink", endpoint,
-               "--legacy-listen", str(legacy), "--legacy-dest", f"127.0.0.1:{free_udp_port()}"]
+               "--legacy-listen", str(legacy), "--legacy-dest", f"127.0.0.1:{free_udp_port()}",
+               *extra]
         with open(root / "fleet.stdout", "w") as out, open(self.err_path, "w") as err:
             self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=err,
                                          cwd=root, start_new_session=True)
@@ -126,14 +127,16 @@ class Fleet:
 class Router:
     """MAVProxy as a router: one master (the whole fleet), one `--out` per ground station."""
 
-    def __init__(self, root: Path, master_port: int, out_ports: list[int]) -> None:
+    def __init__(self, root: Path, master_port: int | list[int], out_ports: list[int]) -> None:
         if not MAVPROXY.is_file():
             pytest.fail(f"MAVProxy is a dependency and is missing: no {MAVPROXY.name} next to "
                         f"{sys.executable} (pip install MAVProxy)", pytrace=False)
         state = root / "mavproxy"
         state.mkdir()
         self.out_path = root / "mavproxy.out"
-        cmd = [sys.executable, "-u", str(MAVPROXY), f"--master=udpin:127.0.0.1:{master_port}",
+        masters = master_port if isinstance(master_port, list) else [master_port]
+        cmd = [sys.executable, "-u", str(MAVPROXY),
+               *(f"--master=udpin:127.0.0.1:{p}" for p in masters),
                *(f"--out=udpout:127.0.0.1:{p}" for p in out_ports),
                "--daemon", "--non-interactive", "--no-state", "--state-basedir", str(state),
                "--default-modules=", "--streamrate=-1"]
@@ -316,3 +319,51 @@ def test_fleet_behind_mavproxy_two_gcs_and_mavsdk(tmp_path: Path, mavlink2: None
         # the change persisted in aircraft 2's parameter file only
         for sysid, value in {**SEEDED, 2: NEW_VALUE}.items():
             assert saved(tmp_path / f"params-v{sysid}.parm")[PARAM] == pytest.approx(value, abs=1e-5)
+
+
+def test_one_master_per_aircraft_with_a_port_step(tmp_path: Path, mavlink2: None) -> None:  # noqa: F811
+    """`--mavlink-port-step 1`: aircraft i sends to the endpoint's port + i - 1, so the router
+    has one `--master` per aircraft, and a request for one system goes down its link only."""
+    for sysid, value in SEEDED.items():
+        (tmp_path / f"params-v{sysid}.parm").write_text(f"{PARAM} {value}\n")
+    base = free_udp_port()
+    while not all(_udp_free(base + i) for i in range(K)):
+        base = free_udp_port()
+    gcs_port = free_udp_port()
+    with ExitStack() as stack:
+        router = Router(tmp_path, [base + i for i in range(K)], [gcs_port])
+        stack.callback(router.close)
+        gcs = GroundStation(gcs_port, 201)
+        stack.callback(gcs.close)
+        fleet = Fleet(tmp_path, f"udpout:127.0.0.1:{base}", K, "--mavlink-port-step", "1")
+        stack.callback(fleet.close)
+        assert wait_for(lambda: (router.check_alive(), fleet.check_alive(),
+                                 gcs.systems() >= set(SEEDED))[-1], START_TIMEOUT_S, 0.05), (
+            f"HEARTBEATs: {gcs.systems()}\n{router.output()}")
+        for sysid, value in SEEDED.items():
+            assert gcs.read_param(sysid, PARAM) == to_float32(value), sysid
+        fleet.stop()
+
+
+def _udp_free(port: int) -> bool:
+    import socket
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind(("127.0.0.1", port))
+        return True
+    except OSError:
+        return False
+    finally:
+        s.close()
+
+
+def test_endpoint_ports_shift_per_aircraft() -> None:
+    from companion.sim.runner import shift_endpoint_port
+
+    assert shift_endpoint_port("udpout:127.0.0.1:14550", 2) == "udpout:127.0.0.1:14552"
+    assert shift_endpoint_port("udpin:0.0.0.0:14550?signing=off", 1) == \
+        "udpin:0.0.0.0:14551?signing=off"
+    assert shift_endpoint_port("tcp:127.0.0.1:5760", 3) == "tcp:127.0.0.1:5763"
+    assert shift_endpoint_port("/dev/ttyUSB0,57600", 5) == "/dev/ttyUSB0,57600"
+    assert shift_endpoint_port("udpout:127.0.0.1:14550", 0) == "udpout:127.0.0.1:14550"

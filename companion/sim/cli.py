@@ -41,8 +41,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
             return 2
     if args.vehicles > 1:
         argv = [a for a in sys.argv[1:]]
-        base = _strip(argv, ("--vehicles",), takes_value=True)
-        return run_fleet(base, args.vehicles, args.legacy_listen or 5500)
+        base = _strip(argv, ("--vehicles", "--mavlink-port-step"), takes_value=True)
+        return run_fleet(base, args.vehicles, args.legacy_listen or 5500,
+                         mavlink_port_step=args.mavlink_port_step)
     cfg = config_from_args(args)
     if not args.legacy_dest and not _configured(args, "legacy.dest"):
         # a simulation stays on this machine: no broadcast onto the network
@@ -123,6 +124,9 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--seed-offset", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--aircraft", default="c172p", help="JSBSim model: c172p (default) or j3cub")
     p.add_argument("--vehicles", type=int, default=1, help="fly K aircraft (ids 1..K)")
+    p.add_argument("--mavlink-port-step", type=int, default=0, metavar="N",
+                   help="with --vehicles: aircraft i uses each UDP/TCP MAVLink endpoint's port "
+                   "+ N*(i-1), one link per aircraft (a router's --master each); 0: all share")
     speed = p.add_mutually_exclusive_group()
     speed.add_argument("--realtime", action="store_true", help="real time (default)")
     speed.add_argument("--fast", action="store_true", help="5x faster than real time")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -186,11 +187,38 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
     return summary
 
 
-def run_fleet(argv_base: list[str], vehicles: int, legacy_listen: int) -> int:
-    """`--vehicles K`: K independent `companion sim` processes, vehicle ids 1..K."""
+def shift_endpoint_port(url: str, offset: int) -> str:
+    """`udpout:127.0.0.1:14550` + 2 -> `udpout:127.0.0.1:14552` (options after `?` kept);
+    a serial endpoint (no network port) is returned unchanged."""
+    if offset == 0 or not url.startswith(("udp", "tcp")):
+        return url
+    head, sep, options = url.partition("?")
+    match = re.search(r":(\d+)$", head)
+    if match is None:
+        return url
+    return f"{head[:match.start()]}:{int(match.group(1)) + offset}{sep}{options}"
+
+
+def _fleet_argv(argv: list[str], offset: int) -> list[str]:
+    out, it = [], iter(argv)
+    for a in it:
+        if a == "--mavlink":
+            out += [a, shift_endpoint_port(next(it, ""), offset)]
+        elif a.startswith("--mavlink="):
+            out.append("--mavlink=" + shift_endpoint_port(a.split("=", 1)[1], offset))
+        else:
+            out.append(a)
+    return out
+
+
+def run_fleet(argv_base: list[str], vehicles: int, legacy_listen: int,
+              *, mavlink_port_step: int = 0) -> int:
+    """`--vehicles K`: K independent `companion sim` processes, vehicle ids 1..K; with a port
+    step, each aircraft's MAVLink endpoints move by it (one link per aircraft)."""
     procs = []
     for i in range(1, vehicles + 1):
-        cmd = [sys.executable, "-m", "companion", *argv_base, "--vehicle-id", str(i),
+        argv = _fleet_argv(argv_base, mavlink_port_step * (i - 1))
+        cmd = [sys.executable, "-m", "companion", *argv, "--vehicle-id", str(i),
                "--legacy-listen", str(legacy_listen + i - 1),
                "--params-file", f"params-v{i}.parm", "--seed-offset", str(i - 1)]
         procs.append(subprocess.Popen(cmd, env={**os.environ}))
