@@ -288,25 +288,18 @@ class _TextSink(_Sink):
         self.files_by_key.clear()
 
 
-class ThreadLog:
-    """The logging handle of one managed thread (one binary file, or CSVs when text)."""
+class _Producer:
+    """What every producer handle shares: its sink, the service's bounded queue and the count
+    of what it lost. Subclasses append to the queue inline (the hot path of every thread)."""
 
-    def __init__(self, service: LogService, name: str, sink: _Sink, text: bool) -> None:
+    def __init__(self, service: LogService, name: str, sink: _Sink) -> None:
         self.name = name
-        self.text = text
         self._sink = sink
         self._queue = service._queue
-        self._service = service
-        self.paused_records = 0
         self._capacity = service.capacity_records
         self._high_water = max(1, service.capacity_records // 2)
         self._wake = service._wake
-        self._clock = service._clock_ns
-        self._packers: dict[int, DataPacker] = {}
-        self._arrays: set[int] = set()
         self._dropped = 0
-        self.rejected = 0
-        self._warned: set[int] = set()
 
     @property
     def dropped(self) -> int:
@@ -316,6 +309,21 @@ class ThreadLog:
     @property
     def logging_off(self) -> bool:
         return self._sink.off
+
+
+class ThreadLog(_Producer):
+    """The logging handle of one managed thread (one binary file, or CSVs when text)."""
+
+    def __init__(self, service: LogService, name: str, sink: _Sink, text: bool) -> None:
+        super().__init__(service, name, sink)
+        self.text = text
+        self._service = service
+        self.paused_records = 0
+        self._clock = service._clock_ns
+        self._packers: dict[int, DataPacker] = {}
+        self._arrays: set[int] = set()
+        self.rejected = 0
+        self._warned: set[int] = set()
 
     def _control(self, record: bytes) -> None:
         if self._sink.accepting:
@@ -432,30 +440,12 @@ class ThreadLog:
         return True
 
 
-class RawLog:
+class RawLog(_Producer):
     """A file of pre-formatted records written by the service's thread (a MAVLink .tlog).
 
     Producers hand over whole records; like `ThreadLog.log`, `append` never blocks and never
     touches the disk, so a slow or full disk costs records (counted), not a link's cycle.
     """
-
-    def __init__(self, service: LogService, name: str, sink: _Sink) -> None:
-        self.name = name
-        self._sink = sink
-        self._queue = service._queue
-        self._capacity = service.capacity_records
-        self._high_water = max(1, service.capacity_records // 2)
-        self._wake = service._wake
-        self._dropped = 0
-
-    @property
-    def dropped(self) -> int:
-        """Records lost: full queue, logging off, or the service closed."""
-        return self._dropped + self._sink.lost
-
-    @property
-    def logging_off(self) -> bool:
-        return self._sink.off
 
     def append(self, record: bytes) -> bool:
         """Queue one record; False when it was dropped."""
@@ -615,7 +605,7 @@ class LogService:
         """Counters: written, dropped, rejected, bytes, files, queued, logging_off, reason."""
         with self._lock:
             sinks = list(self._sinks)
-            logs: list[ThreadLog | RawLog] = [*self._logs.values(), *self._raw.values()]
+            logs: list[_Producer] = [*self._logs.values(), *self._raw.values()]
         reasons = [s.reason for s in sinks if s.reason]
         return {
             "written": sum(s.written for s in sinks),
