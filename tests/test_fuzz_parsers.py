@@ -1227,6 +1227,12 @@ def test_signature_checker_only_accepts_the_untouched_signed_frame(data: st.Data
 def test_param_set_value_decoder_raises_only_wire_value_error(
     raw: bytes, mav_type: int, bytewise: bool
 ) -> None:
+    check_param_decode(raw, mav_type, bytewise)
+
+
+def check_param_decode(raw: bytes, mav_type: int, bytewise: bool) -> None:
+    """A PARAM_SET value decodes to a number or raises WireValueError with a reason (also the
+    fuzz bench's check)."""
     try:
         value = param_codec.decode(raw, mav_type, bytewise=bytewise)
     except param_codec.WireValueError as exc:
