@@ -72,10 +72,13 @@ def flights(root: Path) -> list[Path]:
         return []
 
 
-def finished_flights(root: Path, current: Path | None) -> list[Path]:
-    """Flight directories under `root` that no runtime writes, oldest first."""
+def finished_flights(root: Path, current: Path | None,
+                     every: list[Path] | None = None) -> list[Path]:
+    """Flight directories under `root` (or of `every`, already listed) that no runtime
+    writes, oldest first."""
     cur = current.resolve() if current is not None else None
-    return [p for p in flights(root) if p.resolve() != cur and not _in_use(p)]
+    return [p for p in (flights(root) if every is None else every)
+            if p.resolve() != cur and not _in_use(p)]
 
 
 def _size_bytes(path: Path) -> int:
@@ -108,8 +111,9 @@ def enforce(root: Path, current: Path | None, *, min_free_mb: float, max_flights
     if min_free_mb <= 0 and max_flights <= 0:
         return []
     done: list[Deletion] = []
-    candidates = finished_flights(root, current)
-    total = len(flights(root))  # live ones (this flight, another aircraft's) count too
+    every = flights(root)
+    candidates = finished_flights(root, current, every)
+    total = len(every)  # live ones (this flight, another aircraft's) count too
     for path in candidates:
         too_many = max_flights > 0 and total > max_flights
         try:
