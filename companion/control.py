@@ -132,7 +132,7 @@ class ControlThread(ManagedThread):
         self._engaged = False
         slot = self.ctx.state.estimator
         while slot.read() is None:
-            if self.stop_event.wait(self.ctx.clock.to_host_s(0.05)):
+            if self.ctx.clock.sleep(0.05, self.stop_event):
                 return False
         self._seen = 0
         return True
@@ -152,8 +152,7 @@ class ControlThread(ManagedThread):
         return pilot_switch_auto(servo.pilot_us), us_to_throttle(servo.pilot_us[CH_THROTTLE])
 
     def step(self) -> bool:
-        got = self.ctx.state.estimator.wait_newer(
-            self._seen, self.ctx.clock.to_host_s(0.05))
+        got = self.ctx.state.estimator.wait_newer(self._seen, 0.05, self.ctx.clock)
         if got is None:
             return False
         self.work_t0_ns = time.perf_counter_ns()  # step time excludes the wait

@@ -85,6 +85,8 @@ class RuntimeOptions:
     extra_bridges: list[BridgeFactory] = field(default_factory=list)
     """Built after the MAVLink and legacy bridges, each with (ctx, manager): how the layers above
     the runtime (the live view) attach without the runtime importing them. Not built when dry."""
+    log_writer_thread: bool = True
+    """False: the logs are written when the owner calls `rt.logs.drain()` (a lockstep flight)."""
 
 
 def vehicle_tasks(cfg: Config, opts: RuntimeOptions) -> list[Task]:
@@ -148,7 +150,8 @@ class Runtime:
         if cfg.logs.enabled and not dry:
             from companion.logs import LogService
 
-            self.logs = LogService(self.flight_dir, clock_ns=clock.realtime_ns)
+            self.logs = LogService(self.flight_dir, clock_ns=clock.realtime_ns,
+                                   writer_thread=self.opts.log_writer_thread)
             # set after the manager exists (below): a full disk is reported like a watchdog event
         self.ctx = RuntimeContext(clock=clock, params=params, logs=self.logs,
                                   state=VehicleState(), vehicle_id=cfg.vehicle.id,

@@ -10,7 +10,10 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
+
+if TYPE_CHECKING:
+    from companion.core.clock import Clock
 
 T = TypeVar("T")
 
@@ -69,8 +72,18 @@ class WaitableSlot(DataSlot[T]):
             self._stamp_ns = stamp
             self._cond.notify_all()
 
-    def wait_newer(self, seen_version: int, timeout_s: float) -> tuple[T | None, int] | None:
-        """Return (value, version) once version > seen_version, or None after timeout_s."""
+    def wait_newer(self, seen_version: int, timeout_s: float,
+                   clock: Clock | None = None) -> tuple[T | None, int] | None:
+        """Return (value, version) once version > seen_version, or None after timeout_s.
+
+        With a `clock`, the timeout is in its seconds and the wait is the clock's (scaled, or
+        a lockstep flight's); without, host seconds."""
+        if clock is not None:
+            with self._cond:
+                if not clock.wait_for(self._cond, lambda: self._version > seen_version,
+                                      timeout_s):
+                    return None
+                return self._value, self._version
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while self._version <= seen_version:
@@ -124,8 +137,15 @@ class MessageQueue(Generic[T]):
         with self._cond:
             return self._items.popleft() if self._items else None
 
-    def get(self, timeout_s: float) -> T | None:
-        """Wait up to timeout_s for an item; None on timeout."""
+    def get(self, timeout_s: float, clock: Clock | None = None) -> T | None:
+        """Wait up to timeout_s for an item; None on timeout. With a `clock`, the timeout is
+        in its seconds and the wait is the clock's; without, host seconds."""
+        if clock is not None:
+            with self._cond:
+                items = self._items
+                if not clock.wait_for(self._cond, lambda: bool(items), timeout_s):
+                    return None
+                return items.popleft()
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while not self._items:

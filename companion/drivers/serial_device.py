@@ -199,7 +199,7 @@ class SerialDevice(ManagedThread):
         if self.port is None:
             if self.ctx.clock.monotonic_ns() < self._next_open_ns or not self._open():
                 # wait a little, but see a stop request at once
-                self.stop_event.wait(self.ctx.clock.to_host_s(min(self.read_timeout_s, 0.05)))
+                self.ctx.clock.sleep(min(self.read_timeout_s, 0.05), self.stop_event)
                 return None
         return self.port
 

@@ -7,7 +7,6 @@ decides, from the pilot's mode switch, whether to obey, so the pilot can always 
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 from companion.core.params import ParamSpec, int_param
@@ -87,10 +86,11 @@ class ServoDriver(SerialDevice):
         if self.ensure_port() is None or not self.write(encode_command(cmd)):
             return 0
         clock = self.ctx.clock
-        deadline = time.monotonic() + clock.to_host_s(self.answer_timeout_s)
+        deadline_ns = clock.monotonic_ns() + int(self.answer_timeout_s * 1e9)
         answered = 0
         got_current = False
-        while not got_current and time.monotonic() < deadline and not self.stop_requested:
+        while (not got_current and clock.monotonic_ns() < deadline_ns
+               and not self.stop_requested):
             data = self.read_chunk()
             if not data:
                 continue

@@ -355,8 +355,12 @@ class Eskf:
         so late measurements stay aligned.
         """
         try:
-            g0, g1, g2 = (float(c) for c in np.asarray(gyro_rad_s, dtype=float).reshape(3))
-            a0, a1, a2 = (float(c) for c in np.asarray(accel_m_s2, dtype=float).reshape(3))
+            if type(gyro_rad_s) is tuple and type(accel_m_s2) is tuple:  # the flight path
+                g0, g1, g2 = (float(c) for c in gyro_rad_s)
+                a0, a1, a2 = (float(c) for c in accel_m_s2)
+            else:
+                g0, g1, g2 = (float(c) for c in np.asarray(gyro_rad_s, dtype=float).reshape(3))
+                a0, a1, a2 = (float(c) for c in np.asarray(accel_m_s2, dtype=float).reshape(3))
             dt = float(dt_s)
         except (TypeError, ValueError):
             self.rejected_inputs += 1
@@ -668,17 +672,17 @@ class Eskf:
             p[:, IDX_YAW] = 0.0
         self._p = p
         diag = np.diagonal(p)
+        # one sum per vector: NaN or infinity in any element makes it non-finite (this runs
+        # at the IMU rate, where four isfinite().all() calls cost more than the check is worth)
         state_ok = (
             all(math.isfinite(c) for c in self._q)
-            and np.isfinite(self._pos).all()
-            and np.isfinite(self._vel).all()
-            and np.isfinite(self._bg).all()
-            and np.isfinite(self._ba).all()
+            and math.isfinite(float(self._pos.sum() + self._vel.sum()
+                                    + self._bg.sum() + self._ba.sum()))
         )
         if not state_ok:
             self._fault("non-finite state")
             return False
-        if not (np.isfinite(diag).all() and (diag >= 0.0).all()):
+        if not (math.isfinite(float(diag.sum())) and float(diag.min()) >= 0.0):
             self._fault("covariance not finite or negative variance")
             return False
         if check_pd and not self._is_pd(p):

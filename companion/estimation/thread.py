@@ -97,7 +97,7 @@ class EstimatorThread(ManagedThread):
         core = EstimatorCore(self._params(), self.ctx.home_lla)
         state.imu_stream.drain()
         while not self.stop_requested:
-            sample = state.imu_stream.get(clock.to_host_s(0.05))
+            sample = state.imu_stream.get(0.05, clock)
             if core.initial_phase([sample] if sample is not None else [], state.gps.read()):
                 break
             if core.init_failed:
@@ -116,7 +116,7 @@ class EstimatorThread(ManagedThread):
         if core is None or core.filter is None:
             return 0
         stream = self.ctx.state.imu_stream
-        first = stream.get(self.ctx.clock.to_host_s(0.05))
+        first = stream.get(0.05, self.ctx.clock)
         if first is None:
             return 0
         self.work_t0_ns = time.perf_counter_ns()  # step time excludes the wait
@@ -156,22 +156,22 @@ class EstimatorThread(ManagedThread):
         imu = self.core.last_imu
         t_ns = imu.t_ns if imu is not None else self.ctx.clock.realtime_ns()
         rates = imu.rates_rad_s if imu is not None else (0.0, 0.0, 0.0)
-        bias = st.gyro_bias_rad_s
+        # tolist(): Python floats in one call each (this runs at the IMU rate)
+        bias = st.gyro_bias_rad_s.tolist()
         home = self.core.frame
         out = EstimatorState(
             t_ns=t_ns,
-            quat_wxyz=tuple(float(c) for c in st.quaternion),  # type: ignore[arg-type]
+            quat_wxyz=tuple(st.quaternion.tolist()),  # type: ignore[arg-type]
             roll_rad=st.roll_rad, pitch_rad=st.pitch_rad, yaw_rad=st.yaw_rad,
-            pos_ned_m=(float(st.pos_ned_m[0]), float(st.pos_ned_m[1]), float(st.pos_ned_m[2])),
-            vel_ned_m_s=(float(st.vel_ned_m_s[0]), float(st.vel_ned_m_s[1]),
-                         float(st.vel_ned_m_s[2])),
-            gyro_bias_rad_s=(float(bias[0]), float(bias[1]), float(bias[2])),
-            accel_bias_m_s2=tuple(float(c) for c in st.accel_bias_m_s2),  # type: ignore[arg-type]
+            pos_ned_m=tuple(st.pos_ned_m.tolist()),  # type: ignore[arg-type]
+            vel_ned_m_s=tuple(st.vel_ned_m_s.tolist()),  # type: ignore[arg-type]
+            gyro_bias_rad_s=tuple(bias),  # type: ignore[arg-type]
+            accel_bias_m_s2=tuple(st.accel_bias_m_s2.tolist()),  # type: ignore[arg-type]
             origin_lat_deg=home.lat0_deg if home else None,
             origin_lon_deg=home.lon0_deg if home else None,
             origin_alt_m=home.alt0_m if home else None,
-            cov_diag=tuple(float(c) for c in st.cov_diag),
-            innovations=tuple(float(c) for c in st.last_gps_innovation),
+            cov_diag=tuple(st.cov_diag.tolist()),
+            innovations=tuple(st.last_gps_innovation.tolist()),
             rates_rad_s=(rates[0] - bias[0], rates[1] - bias[1], rates[2] - bias[2]),
             aligned=st.initialised and st.yaw_aligned,
             faults=st.faults,

@@ -469,7 +469,10 @@ class LogService:
         capacity_records: int = 65536,
         flush_period_ms: int = 100,
         clock_ns: Callable[[], int] = time.time_ns,
+        writer_thread: bool = True,
     ) -> None:
+        """`writer_thread` False: no thread; the owner calls `drain()` (a lockstep flight,
+        where the disk is written between two instants of simulated time, deterministically)."""
         if capacity_records < 1:
             raise ValueError(f"capacity_records must be >= 1, got {capacity_records}")
         if flush_period_ms <= 0:
@@ -486,6 +489,7 @@ class LogService:
         self._raw: dict[str, RawLog] = {}
         self._sinks: list[_Sink] = []
         self._thread: threading.Thread | None = None
+        self._writer_thread = writer_thread
         self._closed = False
         self._close_timed_out = False
         self._progress = 0  # batches written, for close() to tell a slow disk from a hung one
@@ -513,8 +517,18 @@ class LogService:
         if self._thread is not None:
             return
         self.flight_dir.mkdir(parents=True, exist_ok=True)
+        if not self._writer_thread:
+            return
         self._thread = threading.Thread(target=self._run, name="log-writer", daemon=True)
         self._thread.start()
+
+    def drain(self) -> None:
+        """Write what is queued now, in the caller's thread: only for a service built
+        without its writer thread."""
+        if self._writer_thread:
+            raise RuntimeError("LogService.drain: the writer thread drains this service")
+        if not self._closed:
+            self._drain()
 
     def open(self, name: str, *, text: bool = False) -> ThreadLog:
         """A new log: ``<name>.bin``, or ``<name>_fmt<index>.csv`` files when `text`."""

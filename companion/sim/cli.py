@@ -66,7 +66,21 @@ def cmd_sim(args: argparse.Namespace) -> int:
                 "\r" + status_line(mgr)[:160], end="", file=sys.stderr, flush=True)))
 
     try:
-        summary = run_sim(cfg, sim, args.duration, on_runtime=live)
+        if args.lockstep:
+            from companion.core.lockstep import LockstepError
+            from companion.sim.lockstep import lockstep_problems, run_lockstep
+
+            problems = lockstep_problems(args.thread_fault, args.clock_step)
+            if problems:
+                print(f"companion sim: --lockstep: {problems[0]}", file=sys.stderr)
+                return 2
+            try:
+                summary = run_lockstep(cfg, sim, args.duration, on_runtime=live)
+            except LockstepError as exc:
+                print(f"companion sim: --lockstep: {exc}", file=sys.stderr)
+                return 1
+        else:
+            summary = run_sim(cfg, sim, args.duration, on_runtime=live)
     except SimError as exc:
         print(f"companion sim: {exc}", file=sys.stderr)
         return 1
@@ -131,6 +145,9 @@ def add_commands(sub: argparse._SubParsersAction,
     speed.add_argument("--realtime", action="store_true", help="real time (default)")
     speed.add_argument("--fast", action="store_true", help="5x faster than real time")
     speed.add_argument("--speed", type=float, help="any time scale, e.g. 2.5")
+    speed.add_argument("--lockstep", action="store_true",
+                       help="world and runtime in one process on simulated time, as fast as "
+                            "the arithmetic; deterministic (no ground links: docs/sitl.md)")
     p.add_argument("--wind", type=float, nargs=3, metavar=("N", "E", "D"),
                    help="steady wind, m/s (NED: the direction it blows towards)")
     p.add_argument("--gps-latency", type=float, default=0.05, metavar="S")

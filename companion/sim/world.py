@@ -9,6 +9,12 @@ real time.
 Device paths are stable symlinks (`<device dir>/imu` ...) to the current pseudo-terminal, as
 udev's /dev/serial/by-id links are to a USB adapter's ttyUSBn: a port can vanish and come back
 (a fault the drivers must survive), also under another kernel name, and the stable name follows.
+
+A lockstep flight (`companion.sim.lockstep`) builds the same `World` with in-process ports and
+runs its tick as a task on simulated time (`run_lockstep`) instead of this process's loop.
+
+Size: the tick (flight model, pilot, devices, faults, truth log) is shared by the two ways of
+running the world, and the fault options' parsing sits beside the faults it configures.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import sys
 import threading
 import time
 import tty
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,7 +47,7 @@ from companion.sim.devices import (
     ImuSimConfig,
     ServoBoardSim,
 )
-from companion.sim.flight import FlightModel, FlightModelError
+from companion.sim.flight import FlightModel, FlightModelError, TruthState
 from companion.sim.scenarios import Pilot, surfaces_from_channels
 
 log = logging.getLogger(__name__)
@@ -151,9 +158,14 @@ class Pty:
 
 
 class World:
-    def __init__(self, opts: WorldOptions) -> None:
+    """The aircraft and its devices. `ports` replaces the pseudo-terminals (a lockstep flight
+    hands its in-process ports, with `answer_servo` wired to the servo port's writes) and
+    `clock` the scaled clock built from the options."""
+
+    def __init__(self, opts: WorldOptions, *, ports: Mapping[str, Any] | None = None,
+                 clock: Clock | None = None) -> None:
         self.opts = opts
-        self.clock = Clock(opts.scale, opts.epoch)
+        self.clock = clock if clock is not None else Clock(opts.scale, opts.epoch)
         rng = np.random.default_rng(opts.seed)
         self.model = FlightModel(opts.aircraft, wind_ned_m_s=opts.wind_ned_m_s, seed=opts.seed)
         trim_throttle = float(self.model.trim_controls.throttle)
@@ -171,8 +183,11 @@ class World:
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
         self.injectors = {dev: FaultInjector(plan, np.random.default_rng(rng.integers(2**63)))
                           for dev, plan in opts.faults.items()}
-        opts.device_dir.mkdir(parents=True, exist_ok=True)
-        self.ptys = {dev: Pty(opts.device_dir / dev) for dev in DEVICES}
+        if ports is None:
+            opts.device_dir.mkdir(parents=True, exist_ok=True)
+            self.ptys: dict[str, Any] = {dev: Pty(opts.device_dir / dev) for dev in DEVICES}
+        else:
+            self.ptys = dict(ports)
         self._board_lock = threading.Lock()
         self._stop = threading.Event()
         self.t_s = 0.0
@@ -182,6 +197,8 @@ class World:
         self.tlog: Any = None
         self.late_ticks = 0
         self.start_utc_s = 12 * 3600.0
+        self.stop_reason = "stopped"
+        self._truth: TruthState | None = None
 
     # ------------------------------------------------------------------ servo board (own thread)
     def _board_loop(self) -> None:
@@ -202,22 +219,26 @@ class World:
                 data = os.read(fd, 4096)
             except (BlockingIOError, OSError):
                 continue
-            with self._board_lock:
-                answer = self.board.feed(data, self.t_s)
-            answer = self._inject("servo", answer)
-            pty.write(answer)
+            self.answer_servo(data)
+
+    def answer_servo(self, data: bytes) -> None:
+        """The board's answer to command bytes, written back to the servo port at once."""
+        with self._board_lock:
+            answer = self.board.feed(data, self.t_s)
+        self.ptys["servo"].write(self._inject("servo", answer))
 
     def _inject(self, dev: str, data: bytes) -> bytes:
         inj = self.injectors.get(dev)
         return inj.apply(data, self.t_s) if inj is not None else data
 
     # ------------------------------------------------------------------ truth log
-    def _open_truth_log(self) -> None:
+    def _open_truth_log(self, *, writer_thread: bool = True) -> None:
         if self.opts.flight_dir is None:
             return
         from companion.logs import LogService
 
-        self.logs = LogService(self.opts.flight_dir, clock_ns=self.clock.realtime_ns)
+        self.logs = LogService(self.opts.flight_dir, clock_ns=self.clock.realtime_ns,
+                               writer_thread=writer_thread)
         self.logs.start()
         self.tlog = self.logs.open("truth")
         self.tlog.define(FMT_TRUTH, ",".join(["%.6f"] * 15 + ["%.9lf", "%.9lf", "%.3f", "%.3f",
@@ -282,7 +303,39 @@ class World:
                 self.logs.close()
             for pty in self.ptys.values():
                 pty.close()
-        elapsed = time.monotonic() - t0_host
+        return self._stats(stop_reason, time.monotonic() - t0_host)
+
+    def run_lockstep(self, stop: threading.Event) -> None:
+        """The world as a task of a lockstep flight: one tick per IMU period of simulated time,
+        the servo board answering from `answer_servo`; the truth log is drained by the owner
+        and closed by `close_lockstep`."""
+        self._open_truth_log(writer_thread=False)
+        clock = self.clock
+        period_ns = int(IMU_DT_S * 1e9)
+        next_ns = clock.monotonic_ns()
+        try:
+            while not stop.is_set():
+                if self.opts.duration_s and self.t_s >= self.opts.duration_s:
+                    self.stop_reason = "duration"
+                    break
+                self._tick(self.model)
+                next_ns += period_ns
+                if clock.wait_until_ns(next_ns, stop):
+                    break
+        except FlightModelError as exc:
+            self.stop_reason = f"flight model: {exc}"
+            log.error("flight model stopped: %s", exc)
+
+    def close_lockstep(self, host_s: float) -> dict[str, Any]:
+        """End a lockstep world: its truth log closed, its figures."""
+        if self.tlog is not None:
+            self.tlog.end()
+            self.tlog = None
+        if self.logs is not None:
+            self.logs.close()
+        return self._stats(self.stop_reason, host_s)
+
+    def _stats(self, stop_reason: str, elapsed: float) -> dict[str, Any]:
         return {
             "stop": stop_reason,
             "sim_time_s": round(self.t_s, 3),
@@ -294,7 +347,7 @@ class World:
         }
 
     def _tick(self, model: FlightModel) -> None:
-        truth = model.truth()
+        truth = self._truth if self._truth is not None else model.truth()
         k = self.ticks
         if k % PILOT_EVERY == 0:
             # the pilot flies straight and level (centred sticks on a trimmed aircraft) while
@@ -310,7 +363,7 @@ class World:
         surfaces = surfaces_from_channels(effective)
         model.set_controls(*surfaces)
         model.step(IMU_DT_S)
-        truth = model.truth()
+        truth = self._truth = model.truth()  # also the next tick's state before its step
         self.t_s = (k + 1) * IMU_DT_S
         self.ticks = k + 1
         self._vanish_faults()

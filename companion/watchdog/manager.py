@@ -29,6 +29,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from companion.core.clock import Worker
 from companion.core.params import ParamSpec, ParamValue, int_param
 from companion.core.sync import MessageQueue
 from companion.watchdog.events import EventKind, WatchdogEvent
@@ -133,7 +134,7 @@ class ThreadManager:
         self._silent: dict[str, bool] = {}
         self._armed: dict[str, bool] = {}  # the periodic section's first window has begun
         self._restart_times: dict[str, deque[float]] = {}
-        self._abandoned_workers: list[threading.Thread] = []
+        self._abandoned_workers: list[Worker] = []
         self._started = False
         #: Set by the runtime when a service manager will restart the process (MGR_ESCALATE 1).
         self.supervised = False
@@ -263,14 +264,15 @@ class ThreadManager:
         while self._stop_reason is None:
             gran_ms = int(self.ctx.params.get("MGR_WDG_GRAN_MS"))
             wait_host_s = clock.to_host_s(gran_ms / 1000.0)
-            self._wake.wait(wait_host_s)
+            clock.wait_event(self._wake, gran_ms / 1000.0)
             self._wake.clear()
             now_host_s, now_cpu_s = time.monotonic(), time.process_time()
             gap_s = now_host_s - last_host_s
             # Suspended, not starved by one of our own threads: the process used (almost) no
             # CPU over the gap. A thread holding the interpreter lock inside C for as long burns
-            # CPU the whole time, and is judged as usual.
-            if (gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
+            # CPU the whole time, and is judged as usual. (A lockstep flight's time stops with
+            # the process: nothing to rebase.)
+            if (not clock.lockstep and gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
                     and now_cpu_s - last_cpu_s < SUSPEND_CPU_SHARE * gap_s):
                 self._rebase(gap_s)
             self._process_commands()
@@ -394,11 +396,11 @@ class ThreadManager:
         if t.restart is RestartType.TEMPORARY and why != "command":
             self._stop_thread(t, why=why)
             return
-        now = time.monotonic()
+        now = self.ctx.clock.monotonic()  # flight time, as the period is
         times = self._restart_times[t.name]
         period_s = int(self.ctx.params.get("MGR_RST_PER_S"))
         intensity = int(self.ctx.params.get("MGR_RST_INTENS"))
-        while times and now - times[0] > self.ctx.clock.to_host_s(period_s):
+        while times and now - times[0] > period_s:
             times.popleft()
         if len(times) >= intensity and why != "command":
             self._stop_thread(t, why=why)

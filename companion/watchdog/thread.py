@@ -13,7 +13,6 @@ silent device.
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import threading
 import time
@@ -23,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from companion.core.clock import Clock
+from companion.core.clock import Clock, Worker
 from companion.core.osthread import set_native_name
 from companion.core.params import ParamRegistry, ParamSpec
 from companion.core.state import VehicleState
@@ -127,7 +126,7 @@ class ManagedThread:
         self._on_exit: Callable[[], None] | None = None
         # incarnation state, replaced at every (re)start
         self._stop = threading.Event()
-        self._worker: threading.Thread | None = None
+        self._worker: Worker | None = None
         self._params_dirty = threading.Event()
         # status (written by the worker, read racily by the manager: plain attributes)
         self.initialised = False
@@ -151,7 +150,7 @@ class ManagedThread:
         self._period_ring = [0] * PERIOD_RING
         self._period_n = 0
         self._last_cycle_start_ns = 0
-        self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (host ns, cycles) samples
+        self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (clock ns, cycles) samples
         self._rate_n = 0
         self.work_t0_ns = 0  # set by device-paced steps when data arrived (excludes the wait)
         self.notices = 0
@@ -265,7 +264,7 @@ class ManagedThread:
         return [self._period_ring[i % PERIOD_RING] for i in range(start, self._period_n)]
 
     def measured_rate_hz(self) -> float:
-        """Cycles per second (in clock time) over the last 256 steps."""
+        """Cycles per second of clock time over the last 256 steps."""
         n = min(self._rate_n, len(self._rate_ring))
         if n < 2:
             return 0.0
@@ -274,7 +273,7 @@ class ManagedThread:
         t_new, c_new = self._rate_ring[(self._rate_n - 1) % size]
         if t_new <= t_old:
             return 0.0
-        return (c_new - c_old) / ((t_new - t_old) / 1e9) / self.ctx.clock.scale
+        return (c_new - c_old) / ((t_new - t_old) / 1e9)
 
     def counters(self) -> dict[str, int]:
         """Thread-specific counters for the flight summary (a driver's bytes and errors)."""
@@ -339,10 +338,9 @@ class ManagedThread:
         self._exit_kind = ""
         self._last_cycle_start_ns = 0
         stop = self._stop
-        self._worker = threading.Thread(
-            target=self._run, args=(stop,), name=f"managed-{self.name}", daemon=True
-        )
-        self._worker.start()
+        # through the clock: a lockstep flight runs the worker as a coroutine on its time
+        self._worker = self.ctx.clock.start_thread(
+            self._run, (stop,), f"managed-{self.name}", priority=self.thread_id or 100)
 
     def request_stop(self) -> None:
         """Ask the worker to leave its loop at its next check of the stop event."""
@@ -370,7 +368,8 @@ class ManagedThread:
         return None if worker is None else worker.native_id
 
     def join_worker(self, host_timeout_s: float) -> bool:
-        """Wait (host time) for the worker to end; True when it has (or there is none)."""
+        """Wait (host time; a lockstep flight's time there) for the worker to end; True when
+        it has (or there is none)."""
         worker = self._worker
         if worker is None or worker is threading.current_thread():
             return True
@@ -381,14 +380,11 @@ class ManagedThread:
         """Raise ThreadInterrupted inside a pure-Python loop that ignores its stop event;
         False when there is no live worker to raise it in."""
         worker = self._worker
-        if worker is None or worker.ident is None or not worker.is_alive():
+        if worker is None:
             return False
-        n = ctypes.pythonapi.PyThreadState_SetAsyncExc(
-            ctypes.c_ulong(worker.ident), ctypes.py_object(ThreadInterrupted)
-        )
-        return n == 1
+        return self.ctx.clock.interrupt_thread(worker, ThreadInterrupted)
 
-    def release_worker(self) -> threading.Thread | None:
+    def release_worker(self) -> Worker | None:
         """Forget the current worker (stopped, or abandoned inside C) and return it."""
         worker, self._worker = self._worker, None
         self.running = False
@@ -401,8 +397,9 @@ class ManagedThread:
 
     # ---------------------------------------------------------------- worker side
     def _run(self, stop: threading.Event) -> None:
-        set_native_name(self.name)
         clock = self.ctx.clock
+        if not clock.lockstep:  # a lockstep worker shares the scheduler's OS thread
+            set_native_name(self.name)
         self.running = True
         tlog = self.tlog
         clean = False
@@ -431,7 +428,8 @@ class ManagedThread:
                 if progressed is not False and progressed != 0:
                     count = progressed if type(progressed) is int else 1
                     work_t0 = self.work_t0_ns or t0
-                    self._account_cycle(t0, t1 - work_t0, budget_ns, count)
+                    self._account_cycle(t0, t1 - work_t0, budget_ns, count,
+                                        clock.monotonic_ns())
                 if period_ns:
                     next_ns += period_ns
                     now = clock.monotonic_ns()
@@ -464,7 +462,10 @@ class ManagedThread:
             if on_exit is not None:
                 on_exit()
 
-    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int = 1) -> None:
+    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int = 1,
+                       clock_ns: int = 0) -> None:
+        """`t0_ns` and `step_ns` in host time (what the step cost); `clock_ns` the runtime's
+        time at the end of the cycle, from which the rate is measured (exact in lockstep)."""
         if self._last_cycle_start_ns:
             self._period_ring[self._period_n % PERIOD_RING] = t0_ns - self._last_cycle_start_ns
             self._period_n += 1
@@ -476,5 +477,5 @@ class ManagedThread:
         if step_ns > budget_ns:
             self.overruns += 1
         self.cycles += count
-        self._rate_ring[self._rate_n % len(self._rate_ring)] = (t0_ns, self.cycles)
+        self._rate_ring[self._rate_n % len(self._rate_ring)] = (clock_ns, self.cycles)
         self._rate_n += 1
