@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -39,6 +41,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"companion sim: {exc}", file=sys.stderr)
             return 2
+    if args.campaign is not None:
+        return _campaign(args)
     if args.vehicles > 1:
         argv = [a for a in sys.argv[1:]]
         base = _strip(argv, ("--vehicles", "--mavlink-port-step"), takes_value=True)
@@ -96,6 +100,40 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _campaign(args: argparse.Namespace) -> int:
+    from datetime import UTC, datetime
+
+    from companion.sim.campaign import CampaignError, load_campaign, run_campaign
+
+    try:
+        specs = load_campaign(args.campaign)
+    except CampaignError as exc:
+        print(f"companion sim: --campaign {exc}", file=sys.stderr)
+        return 2
+    if args.jobs < 1:
+        print(f"companion sim: --jobs {args.jobs}: at least 1", file=sys.stderr)
+        return 2
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    out = args.campaign_dir or Path("campaigns") / f"{args.campaign.stem}-{stamp}"
+
+    def progress(spec: object, n: int, total: int) -> None:
+        s = spec.record()  # type: ignore[attr-defined]
+        state = "ok" if s["exit_code"] == 0 else f"FAILED ({s['error']})"
+        print(f"[{n}/{total}] flight {s['index']}: {state}, {s['wall_s']} s, "
+              f"{s['restarts']} restarts", file=sys.stderr)
+
+    result = run_campaign(specs, out, args.jobs, spec_path=args.campaign, progress=progress)
+    if args.json:
+        import json
+
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"campaign: {result['ok']}/{result['flights']} flights ok in {result['wall_s']} s "
+              f"({result['simulated_s']:.0f} simulated s, {result['speed']}x, {args.jobs} jobs), "
+              f"{result['restarts']} restarts; {out / 'campaign.json'}")
+    return 0 if result["failed"] == 0 else 1
+
+
 def _configured(args: argparse.Namespace, key: str) -> bool:
     """Whether the user set `key` in the configuration file or with --set."""
     if any(o.split("=", 1)[0].strip() == key for o in args.overrides):
@@ -145,6 +183,13 @@ def add_commands(sub: argparse._SubParsersAction,
     speed.add_argument("--realtime", action="store_true", help="real time (default)")
     speed.add_argument("--fast", action="store_true", help="5x faster than real time")
     speed.add_argument("--speed", type=float, help="any time scale, e.g. 2.5")
+    p.add_argument("--campaign", type=Path, metavar="SPEC",
+                   help="fly every flight of a campaign specification (TOML; docs/sitl.md)")
+    p.add_argument("--jobs", type=int, default=max(1, (os.cpu_count() or 1)), metavar="J",
+                   help="flights of a campaign flown at a time (default: one per core)")
+    p.add_argument("--campaign-dir", type=Path, metavar="DIR",
+                   help="where a campaign's flights, summary and dataset go "
+                        "(default campaigns/<spec name>-<UTC time>)")
     speed.add_argument("--lockstep", action="store_true",
                        help="world and runtime in one process on simulated time, as fast as "
                             "the arithmetic; deterministic (no ground links: docs/sitl.md)")
