@@ -4,6 +4,9 @@ The receive thread reads the transport, parses, applies the signing policy and d
 the send thread is the only one that writes to the transport. It is paced by its queue (answers
 posted by the receive thread, the thread manager and parameter changes) with a timeout set by
 the next telemetry stream due, so an answer leaves at once and telemetry leaves on time.
+Neither thread polls: each sleeps until there is work or a deadline, and at most a quarter of
+its watchdog period (`bounded_wait_s`), a clock duration turned into host seconds, so the
+watchdog sees cycles in each of its windows at any simulation speed.
 
 Everything a link remembers between messages (rates set by ground stations, the parameter list
 in progress, the thread-status rotation) lives here rather than in the threads, so a thread
@@ -23,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from companion.core.clock import Clock
 from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
@@ -50,12 +54,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 QUEUE_CAPACITY = 2048
-RECV_TIMEOUT_S = 0.1  # clock seconds: the receive thread's longest wait
+WAIT_CAP_S = 0.5  # host seconds: the longest wait of either thread, whatever its watchdog
+BEATS_PER_WINDOW = 4  # a thread waits at most its watchdog period over this
 ITEMS_PER_CYCLE = 256
 REFUSAL_REPORT_S = 5.0  # at most one STATUSTEXT about refused messages per link per this
 PEER_MEMORY = 32
 TLOG_FLUSH_S = 1.0
-PARAM_BATCH_PAUSE_NS = 5_000_000  # between MAV_PARAM_BURST-sized batches of a list
+PARAM_BATCH_PAUSE_NS = 5_000_000  # host ns between MAV_PARAM_BURST-sized batches of a list
 PEER_SILENCE_S = 5.0  # a transfer for a peer not heard from for this long is abandoned
 RADIO_BULK_SHARE = 0.8  # of what the telemetry schedule leaves of a serial line
 
@@ -370,7 +375,8 @@ class Link:
         self._param_cursor = 0
 
     def param_list_step(self, burst: int) -> int:
-        """Send the next parameters of a list in progress; returns ns until the next batch."""
+        """Send the next parameters of a list in progress; returns host ns until the next batch
+        (the pause is for the client's socket buffer or the radio: real, whatever the clock)."""
         if self._param_cursor is None:
             return 1 << 62
         count = self.params.count()
@@ -451,9 +457,20 @@ def _reset_parser(parser: mavlink.MAVLink) -> None:
 
 
 # ---------------------------------------------------------------------------------- threads
+def bounded_wait_s(clock: Clock, watchdog_ms: int, wait_ns: int | None = None) -> float:
+    """Host seconds a link thread may wait for work due in `wait_ns` clock ns (None: nothing
+    due): at most a quarter of its watchdog period, so each watchdog window holds several
+    completed cycles at any clock scale, and at most `WAIT_CAP_S` of host time."""
+    bound_ns = watchdog_ms * 1_000_000 // BEATS_PER_WINDOW
+    if wait_ns is not None:
+        bound_ns = min(bound_ns, max(0, wait_ns))
+    return min(WAIT_CAP_S, clock.to_host_s(bound_ns / 1e9))
+
+
 def receiver_task(index: int) -> Task:
     """Link `index`'s receive thread: paced by the transport's bounded wait."""
-    return Task(f"mav{index}rx", paced_by="the transport (bounded wait)", budget_ms=5.0,
+    return Task(f"mav{index}rx", paced_by="the transport (waits a quarter of its watchdog)",
+                budget_ms=5.0,
                 watchdog_ms=1000, message_ms=5000, switchable=False,
                 implementation="gcs_bridge.link:LinkReceiver")
 
@@ -485,7 +502,7 @@ class LinkReceiver(ManagedThread):
         self.link.reset_parsers()
 
     def step(self) -> bool:
-        self.link.receive(self.ctx.clock.to_host_s(RECV_TIMEOUT_S), self._mark_work)
+        self.link.receive(bounded_wait_s(self.ctx.clock, self.watchdog_ms), self._mark_work)
         return True  # an absent ground station is not a fault of the aircraft
 
     def _mark_work(self) -> None:
@@ -546,9 +563,10 @@ class LinkSender(ManagedThread):
         now = clock.monotonic_ns()
         wait_ns = link.scheduler.service(now, link, link.emit)
         burst = int(self.ctx.params.get("MAV_PARAM_BURST"))
-        wait_ns = min(wait_ns, link.param_list_step(burst))
-        # downloads are paced in host time: the network is real even in a --fast simulation
-        wait_ns = min(wait_ns, link.bulk.step(time.monotonic_ns(), link.emit))
+        # parameter lists and downloads are paced in host time: the network is real even in a
+        # --fast simulation (host ns times the scale are clock ns)
+        wait_ns = min(wait_ns, int(link.param_list_step(burst) * clock.scale))
+        wait_ns = min(wait_ns, int(link.bulk.step(time.monotonic_ns(), link.emit) * clock.scale))
         link.send_events()
         link.check_home()
         if now >= self._next_stats_ns:
@@ -561,7 +579,7 @@ class LinkSender(ManagedThread):
             self._next_flush_ns = now + int(TLOG_FLUSH_S * 1e9)
         if len(link.queue):
             wait_ns = 0
-        self._wait_host_s = clock.to_host_s(max(0, wait_ns) / 1e9)
+        self._wait_host_s = bounded_wait_s(clock, self.watchdog_ms, wait_ns)
         return True
 
 

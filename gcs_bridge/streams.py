@@ -14,10 +14,20 @@ as its slot holds a sample newer than the last one sent, so a message leaves wit
 millisecond of the device frame that caused it instead of up to a whole period later. When no
 new sample comes within one period, that slot is skipped (counted), never filled with stale
 data.
+
+The sender sleeps between messages rather than polling for samples. Each data source's period
+is learnt from its slot's write stamps, and the sender sleeps (on the link's queue, so answers
+still leave at once) until `MARGIN_HOST_NS` after the first sample expected once a stream falls
+due, so one wake-up finds both the stream due and its sample there. Only a sample later than
+predicted is waited for on its slot (at most `AWAIT_NS` at a time; a slot nobody can wait on is
+polled every `POLL_NS`). A stream sent on time alone goes out at the first wake-up within
+`TIME_SLACK_NS` after it falls due, so it rarely needs a wake-up of its own. Periods are in the
+runtime's clock; predictions are in host time, because slots stamp their writes in host time.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -30,9 +40,12 @@ from gcs_bridge.dialect import Message as Msg
 
 FALLBACK_PERIOD_MS = 1000
 MIN_INTERVAL_US = 2000  # 500 Hz: faster requests are clamped
-POLL_NS = 1_000_000  # while a due stream waits for fresh data from a slot nobody can wait on
-AWAIT_NS = 1_000_000  # longest wait on one waitable slot (queued answers wait at most this)
-IDLE_NS = 100_000_000  # longest sleep, so the sender's watchdog always sees cycles
+POLL_NS = 1_000_000  # while a sample is imminent in a slot nobody can wait on
+AWAIT_NS = 2_000_000  # longest wait on one waitable slot (queued answers wait at most this)
+IDLE_NS = 1_000_000_000  # nothing due: the sender's own bound (its watchdog) applies
+MARGIN_HOST_NS = 500_000  # host ns: the sender wakes this long after a sample is expected
+TIME_SLACK_NS = 20_000_000  # a stream sent on time alone may wait this long for a wake-up
+RATE_INTERVALS = 4  # writes seen before a source's period is trusted for predictions
 PERIOD_REFRESH_NS = 100_000_000  # how soon a changed message period takes effect
 LATENCY_RING = 2048
 FRAME_OVERHEAD_BYTES = 12  # MAVLink 2 header and CRC
@@ -235,6 +248,52 @@ class _StreamState:
 
 
 @dataclass
+class _SourceRate:
+    """What the scheduler learnt of one data slot's write times (host ns, from its stamps)."""
+
+    version: int = 0
+    stamp_ns: int = 0
+    mean_ns: float = 0.0  # mean time between two writes
+    intervals: int = 0  # how many write intervals the mean is made of
+
+    @property
+    def period_ns(self) -> float:
+        """The source's period, 0 while too few writes have been seen to trust it."""
+        return self.mean_ns if self.intervals >= RATE_INTERVALS else 0.0
+
+    def observe(self, version: int, stamp_ns: int) -> None:
+        if self.version and version > self.version and stamp_ns > self.stamp_ns:
+            n = version - self.version
+            period = (stamp_ns - self.stamp_ns) / n
+            self.mean_ns = period if not self.intervals else (
+                self.mean_ns + (period - self.mean_ns) / 8)
+            self.intervals += n
+        if version != self.version:
+            self.version, self.stamp_ns = version, stamp_ns
+
+    def next_host_ns(self, host_now_ns: int) -> int | None:
+        """When the next write is expected (host ns); None when the period is not known.
+
+        A source late by more than a period (a device that went quiet) is expected again one
+        period from now: looked at once per data period, not polled."""
+        period = self.period_ns
+        if not period:
+            return None
+        expected = self.stamp_ns + int(period)
+        if host_now_ns - expected > period:
+            return host_now_ns + int(period)
+        return expected
+
+    def first_after_host_ns(self, host_ns: float) -> float | None:
+        """When the first write at or after `host_ns` is expected; None: period not known."""
+        period = self.period_ns
+        if not period:
+            return None
+        k = max(1, -(-(host_ns - self.stamp_ns) // period))  # whole periods, rounded up
+        return self.stamp_ns + k * period
+
+
+@dataclass
 class StreamStats:
     sent: dict[str, int] = field(default_factory=dict)
     skipped: dict[str, int] = field(default_factory=dict)
@@ -255,6 +314,7 @@ class StreamScheduler:
         self._periods_ms: list[float | None] = []
         self._periods_at_ns = 0
         self._lat_n = 0
+        self._sources: dict[str, _SourceRate] = {}
 
     # ---------------------------------------------------------------- configuration
     def set_interval(self, msg_id: int, interval_us: int, now_ns: int) -> bool:
@@ -318,7 +378,10 @@ class StreamScheduler:
         """
         wait_ns = IDLE_NS
         state = self.core.ctx.state
+        scale = self.core.ctx.clock.scale
+        host_now_ns = time.monotonic_ns()
         self.awaited = None
+        awaited_at_ns = 0  # host ns: when the awaited slot's sample is expected
         awaited_slots: set[int] = set()
         if not self._periods_at_ns or now_ns - self._periods_at_ns >= PERIOD_REFRESH_NS:
             # periods come from parameters: re-read them a few times a second, not every wake-up
@@ -338,13 +401,13 @@ class StreamScheduler:
             if st.next_due_ns == 0:
                 st.next_due_ns = now_ns
             if now_ns < st.next_due_ns:
-                wait_ns = min(wait_ns, st.next_due_ns - now_ns)
+                wait_ns = min(wait_ns, self._until_wake(st, period_ns, now_ns, host_now_ns))
                 continue
             source = st.spec.source
             value: Any = None
             if source is not None:
                 slot = getattr(state, source)
-                value, version, _stamp = slot.read_versioned()
+                value, version, stamp_ns = slot.read_versioned()
                 if value is None:  # no data ever (no such device): look again next period
                     self._advance(st, period_ns, now_ns)
                     wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
@@ -353,6 +416,13 @@ class StreamScheduler:
                     # wait for the first sample *after* falling due, not the newest one seen:
                     # that one is on average half a data period old already
                     st.due_version = version if st.sent else min(version, st.last_version)
+                    due_host_ns = host_now_ns - (now_ns - st.next_due_ns) / scale
+                    if st.sent and version > st.last_version and stamp_ns >= due_host_ns:
+                        st.due_version = version - 1  # the newest came after: it is fresh
+                rate = self._sources.get(source)
+                if rate is None:
+                    rate = self._sources[source] = _SourceRate()
+                rate.observe(version, stamp_ns)
                 if version <= st.due_version:
                     if now_ns - st.next_due_ns >= period_ns:  # no fresh sample in a period
                         st.skipped += 1
@@ -360,13 +430,23 @@ class StreamScheduler:
                         st.due_version = None
                         self._advance(st, period_ns, now_ns)
                         wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
+                        continue
+                    # wake for the skip at the latest, and before that for the sample
+                    wait_ns = min(wait_ns, st.next_due_ns + period_ns - now_ns)
+                    expected = rate.next_host_ns(host_now_ns)
+                    margin_ns = min(MARGIN_HOST_NS, int(rate.period_ns) // 4)
+                    if expected is not None and expected + margin_ns > host_now_ns:
+                        # not there yet: sleep on the queue until it should be
+                        wait_ns = min(wait_ns, int((expected + margin_ns - host_now_ns) * scale))
+                        continue
+                    awaited_slots.add(id(slot))
+                    if isinstance(slot, WaitableSlot) and (
+                            self.awaited is None or (expected or 0) < awaited_at_ns):
+                        self.awaited = (slot, version)
+                        awaited_at_ns = expected or 0
+                        wait_ns = min(wait_ns, AWAIT_NS)
                     else:
-                        awaited_slots.add(id(slot))
-                        if isinstance(slot, WaitableSlot) and self.awaited is None:
-                            self.awaited = (slot, version)
-                            wait_ns = min(wait_ns, AWAIT_NS)
-                        else:
-                            wait_ns = min(wait_ns, POLL_NS)
+                        wait_ns = min(wait_ns, POLL_NS)
                     continue
                 st.last_version = version
                 st.due_version = None
@@ -377,10 +457,32 @@ class StreamScheduler:
                 if value is not None and hasattr(value, "t_ns"):
                     self._note_latency(self.core.now_real_ns() - int(value.t_ns))
             self._advance(st, period_ns, now_ns)
-            wait_ns = min(wait_ns, max(0, st.next_due_ns - now_ns))
+            wait_ns = min(wait_ns, self._until_wake(st, period_ns, now_ns, host_now_ns))
         if len(awaited_slots) > 1:  # sleeping on one slot: look at the others often
             wait_ns = min(wait_ns, POLL_NS)
         return wait_ns
+
+    def _until_wake(self, st: _StreamState, period_ns: int, now_ns: int, host_now_ns: int) -> int:
+        """Clock ns until the sender should wake for stream `st`, which is not due yet.
+
+        A data stream: when the first sample after it falls due should be there; a stream sent
+        on time alone: its due time plus a slack, as it goes out with any wake-up after it."""
+        until_ns = st.next_due_ns - now_ns
+        if until_ns <= 0:
+            return 0
+        source = st.spec.source
+        if source is None:
+            return until_ns + min(TIME_SLACK_NS, period_ns // 10)
+        rate = self._sources.get(source)
+        if rate is None:
+            return until_ns
+        scale = self.core.ctx.clock.scale
+        first = rate.first_after_host_ns(host_now_ns + until_ns / scale)
+        if first is None:
+            return until_ns
+        margin_ns = min(MARGIN_HOST_NS, int(rate.period_ns) // 4)
+        wake_ns = int((first + margin_ns - host_now_ns) * scale)
+        return max(until_ns, min(wake_ns, until_ns + period_ns))
 
     @staticmethod
     def _advance(st: _StreamState, period_ns: int, now_ns: int) -> None:

@@ -30,6 +30,7 @@ class SerialTransport(Transport):
     """
 
     def __init__(self, endpoint: Endpoint, read_timeout_s: float = 0.1) -> None:
+        """`read_timeout_s` is the first read's wait; later reads wait what `recv` is given."""
         super().__init__(endpoint)
         self._port: serial.SerialBase | None = None
         self._read_timeout_s = read_timeout_s
@@ -104,6 +105,8 @@ class SerialTransport(Transport):
                 self._wake_ev.clear()
             return []
         try:
+            if timeout_s != self._read_timeout_s:  # the caller's bound (it follows the clock)
+                self._read_timeout_s = port.timeout = timeout_s
             waiting = port.in_waiting
             data = port.read(waiting if waiting > 0 else 1)
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:

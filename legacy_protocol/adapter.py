@@ -10,6 +10,16 @@ Two managed threads share one UDP socket:
   `MGR_MSTAT_MS`, and the COMMAND_ACKs.
 The manager consumes the parameter queues in the main thread (a tick hook), so the legacy monitor
 and the MAVLink side change the very same parameters.
+
+Both threads sleep until there is work: the receiver until a datagram comes, the sender until
+its next message is due or an acknowledgement is queued. Neither polls. Every period is in the
+runtime's clock (`ctx.clock`, scaled in a `--speed` simulation), and each wait is also bounded
+by a quarter of the thread's own watchdog period (converted to host seconds), so the watchdog
+sees several completed cycles in each of its windows at any simulation speed: a wait that is
+fixed in host time would outlast a window at 20x (a 2000 ms window is 100 ms of host time).
+
+Size: the socket, the two threads that share it, the commands they apply and the data messages
+they build are one protocol's aircraft side, read together; the wire format is in `codec`.
 """
 
 from __future__ import annotations
@@ -50,13 +60,30 @@ def parse_hostport(text: str, default_port: int) -> tuple[str, int]:
 _BIND_PATIENCE_S = 1.0
 """How long a busy command port is retried before giving up (see `_bind_patiently`)."""
 
+WAIT_CAP_S = 0.5
+"""Host seconds: the longest either thread waits, whatever its watchdog period; bounds how long
+a previous runtime's receiver may keep the port (below `_BIND_PATIENCE_S`)."""
+BEATS_PER_WINDOW = 4
+"""A thread's wait is at most its watchdog period over this: several completed cycles fall in
+each watchdog window, so a late wake-up or a slow cycle does not read as a stall."""
+
+
+def bounded_wait_s(ctx: RuntimeContext, watchdog_ms: int, wait_s: float | None = None) -> float:
+    """Host seconds to wait for work due in `wait_s` clock seconds (None: no deadline), bounded
+    so a thread with watchdog period `watchdog_ms` (clock ms) completes several cycles per
+    window at any clock scale, and by `WAIT_CAP_S` of host time."""
+    bound_s = watchdog_ms / 1000.0 / BEATS_PER_WINDOW
+    if wait_s is not None:
+        bound_s = min(bound_s, max(0.0, wait_s))
+    return min(WAIT_CAP_S, ctx.clock.to_host_s(bound_s))
+
 
 def _bind_patiently(sock: socket.socket, addr: tuple[str, int]) -> None:
     """Bind, retrying for up to `_BIND_PATIENCE_S` while the port is in use.
 
     After a reboot the previous runtime's receive thread may still be inside `recvfrom` on the
-    closed socket (its 0.1 s timeout has not run out), and the kernel keeps the port bound until
-    that call returns. A second runtime holding the port for good still fails, a second later."""
+    closed socket (its wait, at most `WAIT_CAP_S`, has not run out), and the kernel keeps the
+    port bound until that call returns. A second runtime holding the port for good still fails, a second later."""
     deadline = time.monotonic() + _BIND_PATIENCE_S
     while True:
         try:
@@ -88,10 +115,12 @@ class PendingCommand:
     addr: tuple[str, int]
 
 
-RX_TASK = Task("legacy-rx", paced_by="the socket (0.1 s wait)", watchdog_ms=2000,
+RX_TASK = Task("legacy-rx", paced_by="datagrams (waits a quarter of its watchdog period)",
+               watchdog_ms=2000,
                message_ms=1000, param_prefix="LEGRX", switchable=False,
                implementation="legacy_protocol.adapter:_Rx")
-TX_TASK = Task("legacy-tx", period_ms=10.0, budget_ms=5.0, watchdog_ms=1000, message_ms=1000,
+TX_TASK = Task("legacy-tx", paced_by="its next due message and queued acknowledgements",
+               budget_ms=5.0, watchdog_ms=1000, message_ms=1000,
                param_prefix="LEGTX", switchable=False,
                implementation="legacy_protocol.adapter:_Tx")
 """The legacy protocol's two rows; the manager hands out their ids."""
@@ -106,17 +135,32 @@ class _Rx(ManagedThread):
         self.adapter.wake_socket()
 
     def step(self) -> bool:
-        self.adapter.receive_once(timeout_s=0.1)
+        self.adapter.receive_once(timeout_s=bounded_wait_s(self.ctx, self.watchdog_ms))
         return True  # not periodic in nature: alive as long as it loops
 
 
 class _Tx(ManagedThread):
+    """Sleeps until the next message is due or an acknowledgement is queued (no poll)."""
+
     def __init__(self, adapter: LegacyAdapter) -> None:
         super().__init__(TX_TASK)
         self.adapter = adapter
+        self._wait_host_s = 0.0
+
+    def interrupt_io(self) -> None:
+        self.adapter.acks.put(None)  # wakes the wait at once
+
+    def prologue(self) -> bool:
+        self._wait_host_s = 0.0
+        return True
 
     def step(self) -> bool:
-        self.adapter.send_due()
+        adapter = self.adapter
+        item = adapter.acks.get(self._wait_host_s)
+        if item is not None:
+            adapter.send_ack(item)
+        wait_ns = adapter.send_due()
+        self._wait_host_s = bounded_wait_s(self.ctx, self.watchdog_ms, wait_ns / 1e9)
         return True
 
 
@@ -153,7 +197,9 @@ class LegacyAdapter:
                 MsgType.RESTART_THREAD,
             )
         }
-        self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]]] = MessageQueue(256)
+        # None: no acknowledgement, only a wake-up of the sender (see `_Tx.interrupt_io`)
+        self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]] | None] = (
+            MessageQueue(256))
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
         if listen:  # False: only build (parameter listing), never take the port
@@ -168,9 +214,11 @@ class LegacyAdapter:
                     "(is another runtime using this port?)"
                 ) from None
         self.listen_addr = self.sock.getsockname()
-        self.sock.settimeout(0.1)
+        self._rx_timeout_s = WAIT_CAP_S
+        self.sock.settimeout(self._rx_timeout_s)
         self._seq = 0
         self._next_due_ns: dict[str, int] = {}
+        self._soonest_ns = 0
         self._status_index = 0
         self.rx = _Rx(self)
         self.tx = _Tx(self)
@@ -197,6 +245,10 @@ class LegacyAdapter:
         return any(ip in net for net in self.allow)
 
     def receive_once(self, timeout_s: float) -> None:
+        """Handle one datagram, or return after `timeout_s` host seconds without one."""
+        if timeout_s != self._rx_timeout_s:  # the watchdog period changed (or the first call)
+            self._rx_timeout_s = timeout_s
+            self.sock.settimeout(timeout_s)
         try:
             data, addr = self.sock.recvfrom(MAX_DATAGRAM)
         except (TimeoutError, BlockingIOError):
@@ -338,16 +390,25 @@ class LegacyAdapter:
     def _due(self, key: str, period_ms: int, now_ns: int) -> bool:
         due = self._next_due_ns.get(key, 0)
         if now_ns < due:
+            self._soonest_ns = min(self._soonest_ns, due)
             return False
-        self._next_due_ns[key] = now_ns + period_ms * 1_000_000
+        due = self._next_due_ns[key] = now_ns + period_ms * 1_000_000
+        self._soonest_ns = min(self._soonest_ns, due)
         return True
 
-    def send_due(self, *, force_acks_only: bool = False) -> None:
-        while (item := self.acks.get_nowait()) is not None:
+    def send_ack(self, item: tuple[codec.CommandAck, tuple[str, int]] | None) -> None:
+        if item is not None:
             self._send(item[0], item[1])
+
+    def send_due(self, *, force_acks_only: bool = False) -> int:
+        """Send the queued acknowledgements and the messages that are due; returns the clock
+        ns until the next message falls due (what the sender may sleep)."""
+        for item in self.acks.drain():
+            self.send_ack(item)
         if force_acks_only:
-            return
+            return 0
         now = self.ctx.clock.monotonic_ns()
+        self._soonest_ns = now + 3600 * 10**9  # nothing due: the caller's bound applies
         params = self.ctx.params
         threads = self.manager.threads
         if threads and self._due("thread_status", int(params.get("MGR_STATUS_MS")), now):
@@ -373,6 +434,7 @@ class LegacyAdapter:
                 msg = builder(self, t)
                 if msg is not None:
                     self._send(msg)
+        return self._soonest_ns - now
 
     @staticmethod
     def thread_status(t: ManagedThread) -> codec.ThreadStatus:

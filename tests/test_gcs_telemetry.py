@@ -352,3 +352,22 @@ def test_fit_to_line_cuts_the_fastest_first() -> None:
     assert streams.fit_to_line([1.0, 2.0], [10, 10], [False, False], 1e6) == [1.0, 2.0]
     tiny = streams.fit_to_line([20.0, 2.0], [100, 100], [False, False], 1.0)
     assert tiny == [streams.MIN_FITTED_HZ, streams.MIN_FITTED_HZ]
+
+
+def test_a_sources_period_is_learnt_from_its_write_stamps() -> None:
+    """The sender sleeps until a sample is expected rather than polling for it: the period
+    comes from the slot's stamps once a few writes were seen, and a quiet source is looked at
+    once per period, not every millisecond."""
+    rate = streams._SourceRate()
+    ms = 1_000_000
+    rate.observe(1, 1000 * ms)
+    assert rate.next_host_ns(1001 * ms) is None  # one write: no period yet
+    for v in range(2, 2 + streams.RATE_INTERVALS):
+        rate.observe(v, 1000 * ms + (v - 1) * 10 * ms)  # 100 Hz
+    last = 1000 * ms + streams.RATE_INTERVALS * 10 * ms
+    assert rate.period_ns == 10 * ms
+    assert rate.next_host_ns(last + 2 * ms) == last + 10 * ms
+    assert rate.first_after_host_ns(last + 25 * ms) == last + 30 * ms
+    assert rate.next_host_ns(last + 50 * ms) == last + 60 * ms  # late by > a period: quiet
+    rate.observe(rate.version + 2, last + 20 * ms)  # two writes between two looks
+    assert rate.period_ns == 10 * ms

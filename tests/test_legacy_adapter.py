@@ -14,7 +14,7 @@ from companion.core.clock import Clock
 from companion.core.params import ParamRegistry
 from companion.watchdog import RuntimeContext, ThreadManager
 from legacy_protocol import codec
-from legacy_protocol.adapter import LegacyAdapter
+from legacy_protocol.adapter import WAIT_CAP_S, LegacyAdapter, bounded_wait_s
 
 SENDER = ("127.0.0.1", 40000)
 
@@ -78,3 +78,20 @@ def test_a_command_that_finds_its_queue_full_is_answered_rejected(adapter: Legac
     adapter.process_commands()
     acks = _acks(adapter)
     assert len(acks) == 64 and all(r == codec.AckResult.ACCEPTED for _, r in acks)
+
+
+def test_the_sender_sleeps_until_its_next_message_within_a_quarter_watchdog(
+        adapter: LegacyAdapter) -> None:
+    """No 100 Hz poll: the sender sleeps until a message is due (or an ack is queued), and never
+    longer than a quarter of its watchdog period in host time, whatever the clock's scale."""
+    wait_ns = adapter.send_due()  # everything is due at the first call
+    assert adapter.counters.sent == 2  # a THREAD_STATUS (of its own threads), MANAGER_STATUS
+    period_ns = min(int(adapter.ctx.params.get(name)) for name in
+                    ("MGR_STATUS_MS", "MGR_MSTAT_MS")) * 1_000_000
+    assert period_ns - 50_000_000 < wait_ns <= period_ns
+    assert adapter.send_due() > 0 and adapter.counters.sent == 2  # nothing new is due
+    assert bounded_wait_s(adapter.ctx, 1000, wait_ns / 1e9) == pytest.approx(0.25)
+    fast = RuntimeContext(clock=Clock(scale=20.0), params=ParamRegistry(), vehicle_id=3)
+    assert bounded_wait_s(fast, 2000) == pytest.approx(0.025)  # a 100 ms window at 20x
+    assert bounded_wait_s(fast, 2000, 0.2) == pytest.approx(0.01)  # due sooner: sooner
+    assert bounded_wait_s(adapter.ctx, 600_000) == WAIT_CAP_S

@@ -58,6 +58,12 @@ SUSPEND_GAP_S = 1.0
 is taken to have been suspended rather than the threads to have stalled."""
 SUSPEND_CPU_SHARE = 0.25
 """...provided the process used less than this share of one core over the gap."""
+MIN_WINDOW_HOST_S = 0.1
+"""The shortest watchdog window in host seconds. In flight (scale 1) every `*_WDG_MS` is longer;
+in a simulation at `--speed 20` the IMU's 500 ms window would be 25 ms of host time, shorter than
+the interpreter and the OS may keep a healthy thread from running on a busy machine, and the
+thread would be restarted for the host's hiccup. So a window lasts at least this much host time
+(at 20x: 2 s of flight time for the IMU); a lockstep flight has no host time to hiccup."""
 
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
@@ -352,7 +358,11 @@ class ThreadManager:
         return True
 
     def _schedule_check(self, t: ManagedThread, now_ns: int) -> None:
-        self._next_check_ns[t.name] = now_ns + int(t.watchdog_ms * 1e6)
+        window_ns = int(t.watchdog_ms * 1e6)
+        clock = self.ctx.clock
+        if not clock.lockstep:
+            window_ns = max(window_ns, int(MIN_WINDOW_HOST_S * clock.scale * 1e9))
+        self._next_check_ns[t.name] = now_ns + window_ns
 
     def _stop_thread(self, t: ManagedThread, *, why: str) -> str:
         """Stop the worker safely and release its resources; returns how it ended:
