@@ -27,6 +27,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("drivers", []),
     ("sim", []),
     ("logs", []),
+    ("reader", []),
     ("mavlink", []),
     ("gcs_transfer", []),
     ("estimation", ["--full"]),
@@ -35,6 +36,8 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("report", []),
     ("dataset", []),
     ("fleet_router", []),
+    ("wakeup", []),
+    ("lockstep", []),
 ]
 
 

@@ -8,21 +8,22 @@ used, 2 bad arguments or unusable inputs.
 from __future__ import annotations
 
 import argparse
-import csv
 import logging
 import sys
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from horizon.camera import CameraError, CameraModel
 from horizon.detector import DEFAULT_METHOD, create_detector, method_names
-from horizon.estimate import HorizonEstimate
-from horizon.output import CsvSink, OutputError, OverlayFrames, OverlayVideo, draw_overlay
-from horizon.sources import Frame, FrameSourceError, iter_frames, parse_input
+
+# The main CLI imports this module for every `companion ...` command: the outputs and frame
+# sources (and numpy) are imported by the commands that use them.
+if TYPE_CHECKING:
+    import numpy as np
+
+    from horizon.estimate import HorizonEstimate
+    from horizon.sources import Frame
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +161,9 @@ def _fail(message: str) -> int:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
+    from horizon.output import CsvSink, OutputError, OverlayFrames, OverlayVideo, draw_overlay
+    from horizon.sources import FrameSourceError, iter_frames, parse_input
+
     try:
         specs = [parse_input(t) for t in args.inputs]
         if args.camera:
@@ -214,6 +218,10 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 
 
 def _cmd_stream(args: argparse.Namespace) -> int:
+    import threading
+
+    from horizon.output import CsvSink, OutputError
+    from horizon.sources import FrameSourceError, iter_frames, parse_input
     from horizon.stream import LegacyHorizonSender, MavlinkHorizonSender, Sender, run_stream
 
     if not args.legacy and not args.mavlink:
@@ -310,6 +318,10 @@ def _cmd_stream(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    import csv
+
+    import numpy as np
+
     from horizon.synth import DISTURBANCES, apply_disturbance, random_spec, render_scene
 
     if args.disturbance not in DISTURBANCES:

@@ -15,16 +15,20 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import EstimatorState
-from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL, Eskf
-from companion.estimation.fusion import EstimatorCore
 from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
+
+if TYPE_CHECKING:
+    # the filter (numpy, scipy, filterpy) loads when the thread starts, not when its
+    # parameters are listed (`companion params`, the docs)
+    from companion.estimation.eskf import Eskf
+    from companion.estimation.fusion import EstimatorCore
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +47,7 @@ class EstimatorThread(ManagedThread):
     def __init__(self, *, task: Task = VEHICLE_TASKS["estimator"]) -> None:
         super().__init__(task)
         self.core: EstimatorCore | None = None
+        self._std_index = np.arange(9)
         self._gps_seen = 0
         self._hzn_seen = 0
         self.faults_reported = 0
@@ -94,6 +99,10 @@ class EstimatorThread(ManagedThread):
     def prologue(self) -> bool:
         state = self.ctx.state
         clock = self.ctx.clock
+        from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL
+        from companion.estimation.fusion import EstimatorCore
+
+        self._std_index = np.r_[IDX_POS, IDX_VEL, IDX_ATT]  # the logged standard deviations
         core = EstimatorCore(self._params(), self.ctx.home_lla)
         state.imu_stream.drain()
         while not self.stop_requested:
@@ -181,5 +190,5 @@ class EstimatorThread(ManagedThread):
             std = np.sqrt(np.maximum(st.cov_diag, 0.0))
             self.tlog.log(FMT_STATE, st.roll_rad, st.pitch_rad, st.yaw_rad, *out.pos_ned_m,
                           *out.vel_ned_m_s, *out.gyro_bias_rad_s, *out.accel_bias_m_s2,
-                          *std[IDX_POS], *std[IDX_VEL], *std[IDX_ATT], st.faults,
+                          *std[self._std_index].tolist(), st.faults,
                           int(out.aligned), t_ns=t_ns)

@@ -16,13 +16,12 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from companion.logs.archive import ArchiveError, is_archive, unpack
-from companion.logs.convert import convert_file, csv_name, format_time, input_files
-from companion.logs.reader import LogFile, LogFormatError, read_log
+# The main CLI imports this module to build its parser for every `companion ...` command, so
+# the libraries a command needs are imported in the command (docs/architecture.md).
+if TYPE_CHECKING:
+    from companion.logs.reader import LogFile
 
 __all__ = ["add_commands", "flight_of_archive", "main"]
 
@@ -41,8 +40,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("info", help="formats, record counts, time span, markers, damage")
-    i.add_argument("path", type=Path, metavar="FILE",
-                   help="a log file, or a flight archive (every log in it)")
+    i.add_argument("path", type=Path, metavar="FILE_OR_DIR",
+                   help="a log file, a flight directory (every *.bin log in it, and a total) "
+                   "or a flight archive (every log in it)")
     i.add_argument("--salvage", action="store_true", help="read past damage and report it")
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
@@ -79,6 +79,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
 def flight_of_archive(path: Path) -> Path | None:
     """The flight directory of the archive `path`, unpacked next to it unless it already is;
     says where on stderr. None (after printing the error) when the archive is unusable."""
+    from companion.logs.archive import ArchiveError, unpack
+
     try:
         done = unpack(path)
     except ArchiveError as exc:
@@ -95,6 +97,9 @@ def flight_of_archive(path: Path) -> Path | None:
 def _log_inputs(paths: list[Path]) -> tuple[list[Path], bool]:
     """Log files named by `paths` (directories expanded), archives replaced by the logs of
     their unpacked flight; and whether every archive could be unpacked."""
+    from companion.logs.archive import is_archive
+    from companion.logs.convert import input_files
+
     out: list[Path] = []
     ok = True
     for p in input_files(paths):
@@ -110,6 +115,8 @@ def _log_inputs(paths: list[Path]) -> tuple[list[Path], bool]:
 
 
 def _read(path: Path, salvage: bool) -> LogFile | None:
+    from companion.logs.reader import LogFormatError, read_log
+
     try:
         lf = read_log(path, salvage=salvage)
     except LogFormatError as exc:
@@ -157,6 +164,8 @@ class _Progress:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    from companion.logs.convert import convert_file
+
     files, ok = _log_inputs([Path(p) for p in args.paths])
     if not files:
         if ok:
@@ -183,6 +192,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _info_dict(lf: LogFile) -> dict[str, Any]:
+    from companion.logs.convert import format_time
+
     times = [int(s.time_ns.min()) for s in lf.streams if s.n_records] + [
         m.time_ns for m in lf.markers
     ]
@@ -232,22 +243,52 @@ def _info_dict(lf: LogFile) -> dict[str, Any]:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    if not is_archive(args.path):
-        return _info_one(args.path, args.salvage, args.json, None)
-    files, ok = _log_inputs([args.path])
+    """A log file, a flight directory (each log, then a total) or a flight archive."""
+    from companion.logs.archive import is_archive
+    from companion.logs.convert import input_files
+
+    path: Path = args.path
+    if not path.exists():
+        print(f"error: cannot read {path}: no such file or directory", file=sys.stderr)
+        return 1
+    if path.is_dir():
+        try:
+            files = input_files([path])
+        except OSError as exc:
+            print(f"error: cannot list {path}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        if not files:
+            print(f"error: {path}: no .bin/.uavlog log in this directory", file=sys.stderr)
+            return 1
+        return _info_many(files, args.salvage, args.json, total=True)
+    if not is_archive(path):
+        return _info_one(path, args.salvage, args.json, None)
+    files, ok = _log_inputs([path])
     if not ok:
         return 1
     if not files:
-        print(f"error: {args.path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
+        print(f"error: {path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
         return 1
-    infos: list[dict[str, Any]] | None = [] if args.json else None
+    return _info_many(files, args.salvage, args.json, total=False)
+
+
+def _info_many(files: list[Path], salvage: bool, as_json: bool, *, total: bool) -> int:
+    """One block per log (a JSON list with --json); with `total`, a last line adding them up.
+    A log that cannot be read is its error line, and the exit status is 1."""
+    infos: list[dict[str, Any]] = []
     status = 0
     for k, path in enumerate(files):
-        if k and infos is None:
+        if k and not as_json:
             print()
-        status |= _info_one(path, args.salvage, args.json, infos)
-    if infos is not None:
-        print(json.dumps(infos, indent=2))  # one list for the flight: one JSON document
+        status |= _info_one(path, salvage, as_json, infos)
+    if as_json:
+        print(json.dumps(infos, indent=2))  # one list: one JSON document
+    elif total:
+        size = sum(i["size_bytes"] for i in infos)
+        records = sum(i["records"] for i in infos)
+        failed = len(files) - len(infos)
+        print(f"\ntotal: {len(infos)} log(s), {size} bytes ({size / 1e6:.1f} MB), {records} records"
+              + (f"; {failed} log(s) unreadable" if failed else ""))
     return status
 
 
@@ -260,8 +301,9 @@ def _info_one(path: Path, salvage: bool, as_json: bool,
     info = _info_dict(lf)
     if collect is not None:
         collect.append(info)
-        return 0
-    if as_json:
+        if as_json:
+            return 0
+    elif as_json:
         print(json.dumps(info, indent=2))
         return 0
     print(
@@ -298,6 +340,8 @@ def _key(index: int, number: int) -> str:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from companion.logs.archive import is_archive
+
     if args.dataset is not None:
         return _export_dataset(args.path, args.dataset)
     if args.to is None or len(args.path) != 1:
@@ -328,6 +372,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def _export_one(path: Path, to: str, out_arg: Path | None, salvage: bool) -> int:
+    import numpy as np
+
+    from companion.logs.convert import csv_name
+
     lf = _read(path, salvage)
     if lf is None:
         return 1
@@ -364,6 +412,7 @@ def _export_one(path: Path, to: str, out_arg: Path | None, salvage: bool) -> int
 
 def _export_dataset(paths: list[Path], dataset: Path) -> int:
     """``export --dataset``: each flight as far as it reads; exit 1 when one had problems."""
+    from companion.logs.archive import is_archive
     from companion.logs.dataset import export_flight, flight_dirs
 
     status = 0

@@ -1,9 +1,17 @@
 """Reader of binary flight logs: whole file in, one numpy structured array per format out.
 
-How it stays fast: record boundaries are a chain (each header gives the size of its record), so
-one tight pass over the headers finds them all; everything else (which definition applies to
-each record, validation, field extraction) is done with numpy over all records at once, and
-each format's fields come out of the file bytes with one gather and one `view`.
+How it stays fast: record boundaries are a chain (each header gives the size of its record),
+followed without a Python step per record. A run of one repeating pattern of record sizes (one
+Data Block format, or a few interleaved) is predicted from its first records and every
+predicted header is checked at once (`_verify_run`); elsewhere walkers started every few
+kilobytes follow the chain in lockstep, one numpy step per record, and hand over where one
+lands on the next one's start (`_walk_fast`); what neither proves (damage, the end of the
+file) is walked record by record (`_scan_py`, the reference the others are tested against).
+Everything else (which definition applies to each record, validation, field extraction) is
+done with numpy over all records at once: each Data Block format's rows come out of the file
+bytes with one gather of whole records (TIME and fields already have the layout of a row, TIME
+becoming ``time_s`` in place), each Byte Array format's elements with one block copy per
+record of its common lengths.
 
 How it stays safe: every loop advances through the file, every allocation is proportional to
 the file size, and anything the contract calls corruption raises `LogFormatError` with the byte
@@ -24,7 +32,8 @@ Layout of the results (see docs/logs.md):
   share one layout and otherwise refuses and points at `LogFile.streams_of(index)`.
 
 Size: the fast path, the salvage path for damaged files and the per-format decoding share
-the record-walking code; splitting it would duplicate that.
+the record-walking code; splitting it would duplicate that. The fast walks sit next to the
+reference walk they must agree with, so a change to framing is made in one place.
 """
 
 from __future__ import annotations
@@ -33,12 +42,11 @@ import logging
 import os
 from array import array
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from companion.logs.formats import FormatError, FormatSpec, parse_format
 from companion.logs.records import (
@@ -81,6 +89,32 @@ for _t in (COMMENT, DEFINITION):
     _SIZES[_t] = HEADER_SIZE
 _KNOWN_LUT = np.zeros(256, dtype=bool)
 _KNOWN_LUT[list(KNOWN_TYPES)] = True
+_DATA_LUT = np.zeros(256, dtype=bool)  # Data Block, Byte Array, Data Array
+_DATA_LUT[[DATA, ARRAY, ARRAY_ALT]] = True
+_SIZES_NP = np.minimum(np.array(_SIZES, dtype=np.int64), 1 << 40)  # no overflow in sums
+_EMPTY = np.zeros(0, dtype=np.int64)
+# The fast walk (`_walk_fast`): stretches shorter than _FAST_MIN bytes are walked in Python;
+# a stretch starts at _FAST_CHUNK bytes and doubles while it is proved whole; one walker per
+# _SEGMENT bytes starts at the first of the segment's first _PROBE bytes from which
+# _PROBE_STEPS headers chain onto known types; a failed hand-over is followed in Python for at
+# most _RESYNC bytes; past what the fast walk proves, _SLOW_WINDOW bytes are walked in Python.
+_FAST_MIN = 1 << 15
+_FAST_CHUNK = 1 << 18
+_FAST_CHUNK_MAX = 1 << 22
+_SEGMENT = 4096
+_PROBE = 128
+_PROBE_STEPS = 3
+_PROBE_ROUNDS = 8
+_HIGH = np.arange(256, dtype=np.int64) << 8  # the high byte of a length, shifted
+_RESYNC = 4 * _SEGMENT
+# Runs (`_verify_run`): the period (at most _RUN_PERIOD records) is learnt from the records of
+# the first _RUN_LEARN bytes; a run shorter than _RUN_MIN records hands over to the walkers.
+_RUN_PERIOD = 12
+_RUN_LEARN = 4096
+_RUN_MIN = 512
+_SLOW_WINDOW = 1 << 14
+_ROW_GROUPS = 4  # Byte Array lengths copied as whole rows (the most common ones)
+_FEW = 16  # at most this many formats/streams: group records by one pass per format
 _SALVAGE_WINDOW = 1024  # bytes parsed after a resynchronisation before validating (doubles)
 _SEARCH_WINDOW = 1 << 16  # most bytes examined at once when looking for a plausible record
 
@@ -124,7 +158,11 @@ class Damage:
 
 @dataclass
 class Stream:
-    """The records of one format index under one definition (see the module docstring)."""
+    """The records of one format index under one definition (see the module docstring).
+
+    A Byte Array stream keeps its elements as one flat array (`values`, record after record,
+    with `lengths`); its long table `data` (one 15-byte row per element) is built on first use.
+    """
 
     index: int
     kind: str  # "block" (Data Block) or "array" (Byte Array)
@@ -132,10 +170,54 @@ class Stream:
     columns: tuple[str, ...]
     number: int  # 1 for the first stream of its index, 2 for the next...
     definition_offset: int
-    data: np.ndarray
     time_ns: np.ndarray  # int64 per record, exact
     offsets: np.ndarray  # int64 byte offset of each record
     lengths: np.ndarray | None = None  # elements per record (arrays only)
+    values: np.ndarray | None = None  # arrays: every element, in file order
+    time_s: np.ndarray | None = None  # arrays: float64 seconds per record
+    _data: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def data(self) -> np.ndarray:
+        """The structured array: one row per record (blocks) or per element (arrays)."""
+        if self._data is None:
+            self._data = self._long_table()
+        return self._data
+
+    def _long_table(self) -> np.ndarray:
+        assert self.values is not None and self.lengths is not None and self.time_s is not None
+        lens = self.lengths.astype(np.int64)
+        total = int(self.values.size)
+        out = np.empty(
+            total,
+            dtype=np.dtype(
+                [
+                    ("time_s", "<f8"),
+                    ("record", "<u4"),
+                    ("element", "<u2"),
+                    (self.columns[0], self.values.dtype),
+                ]
+            ),
+        )
+        before = np.cumsum(lens) - lens
+        out[self.columns[0]] = self.values
+        out["time_s"] = np.repeat(self.time_s, lens)
+        out["record"] = np.repeat(np.arange(self.offsets.size), lens)
+        out["element"] = np.arange(total) - np.repeat(before, lens)
+        return out
+
+    def head(self, k: int) -> Stream:
+        """The stream of its first `k` records."""
+        if self.kind != "array":
+            return replace(self, time_ns=self.time_ns[:k], offsets=self.offsets[:k],
+                           _data=self.data[:k])
+        assert self.lengths is not None and self.values is not None and self.time_s is not None
+        n_values = int(self.lengths[:k].sum())
+        return replace(
+            self, time_ns=self.time_ns[:k], offsets=self.offsets[:k], lengths=self.lengths[:k],
+            values=self.values[:n_values], time_s=self.time_s[:k],
+            _data=None if self._data is None else self._data[:n_values],
+        )
 
     @property
     def format(self) -> str:
@@ -152,10 +234,9 @@ class Stream:
 
     def arrays(self) -> list[np.ndarray]:
         """One 1-D array of elements per record (arrays only)."""
-        if self.kind != "array" or self.lengths is None:
+        if self.kind != "array" or self.lengths is None or self.values is None:
             raise ValueError(f"format index {self.index} holds Data Blocks, not Byte Arrays")
-        values = self.data[self.value_field]
-        return np.split(values, np.cumsum(self.lengths)[:-1]) if self.lengths.size else []
+        return np.split(self.values, np.cumsum(self.lengths)[:-1]) if self.lengths.size else []
 
     def to_pandas(self) -> pd.DataFrame:
         import pandas as pd
@@ -275,8 +356,8 @@ class _Version:
     comment: tuple[str, ...] | None
 
 
-def _scan(buf: bytes, start: int, stop: int) -> tuple[array[int], int, str]:
-    """Follow the record chain from `start`; the hot loop of the reader.
+def _scan_py(buf: bytes, start: int, stop: int) -> tuple[array[int], int, str]:
+    """Follow the record chain from `start` one record at a time (the reference walk).
 
     Returns the offsets of the records that fit in the file, the offset where it stopped, and
     why: "eof", "window" (reached `stop`), "unknown" (unknown type), "past_eof" (record longer
@@ -301,6 +382,242 @@ def _scan(buf: bytes, start: int, stop: int) -> tuple[array[int], int, str]:
             return out, off, "window"
         return out, off, "cut_header"
     return out, off, ("unknown" if sizes[buf[off]] == _UNKNOWN else "past_eof")
+
+
+def _scan(buf: bytes, start: int, stop: int, *, fast: bool = True) -> tuple[np.ndarray, int, str]:
+    """Follow the record chain from `start`; the hot loop of the reader.
+
+    Same contract as `_scan_py` (offsets as an int64 array). Long stretches are walked by
+    `_walk_fast`, which returns only offsets it has proved to be on the chain; whatever it
+    leaves (damage, the end of the file, a stretch it could not prove) is walked by `_scan_py`
+    a window at a time, so both give the same offsets and the same stop (tested).
+    """
+    n = len(buf)
+    limit = min(stop, n - 3)
+    if not fast or limit - start < _FAST_MIN:
+        offs, off, reason = _scan_py(buf, start, stop)
+        return np.frombuffer(offs, dtype=np.int64) if len(offs) else _EMPTY, off, reason
+    arr = np.frombuffer(buf, dtype=np.uint8)
+    parts: list[np.ndarray] = []
+    pos = start
+    chunk = _FAST_CHUNK
+    while True:
+        if limit - pos >= _FAST_MIN:
+            end = min(limit, pos + chunk)
+            while True:  # runs of a repeating pattern first, verified whole
+                nodes, pos = _verify_run(buf, arr, pos, end)
+                parts.append(nodes)
+                if nodes.size < _RUN_MIN or pos >= end:
+                    break
+            whole = pos >= end
+            if not whole:
+                nodes, pos, whole = _walk_fast(buf, arr, pos, end)
+                parts.append(nodes)
+            if whole:  # proved up to `end`: go on with a longer stretch
+                chunk = min(2 * chunk, _FAST_CHUNK_MAX)
+                if pos < limit:
+                    continue
+            else:
+                chunk = _FAST_CHUNK
+        # The reference walk: the end of the range, or past what the fast walk could not prove.
+        offs, pos, reason = _scan_py(buf, pos, min(stop, pos + _SLOW_WINDOW))
+        if len(offs):
+            parts.append(np.frombuffer(offs, dtype=np.int64))
+        if reason != "window" or pos >= stop:
+            out = np.concatenate(parts) if parts else _EMPTY
+            return out, pos, reason
+
+
+def _verify_run(buf: bytes, arr: np.ndarray, start: int, end: int) -> tuple[np.ndarray, int]:
+    """The longest stretch from `start` (a record start) that repeats the sizes of its first
+    records, as far as it is proved: offsets and the offset after the last one.
+
+    Most logs are long runs of one pattern of record sizes (one Data Block size, or a fast and a
+    slow format interleaved), so the offsets of the whole stretch are predicted from the period
+    and every predicted record's header is checked at once: a record whose header gives the
+    next predicted offset proves it, from `start` on, up to the first that does not.
+    """
+    n = arr.size
+    head, stop, _ = _scan_py(buf, start, min(end, start + _RUN_LEARN))
+    if len(head) < 2 * _RUN_PERIOD:
+        return _as_offsets(head), stop
+    first = np.frombuffer(head, dtype=np.int64)
+    sizes = np.diff(first)
+    period = 0
+    for p in range(1, _RUN_PERIOD + 1):
+        if np.array_equal(sizes[p:], sizes[:-p]):
+            period = p
+            break
+    if not period:
+        return first[:-1], int(first[-1])
+    cum = np.concatenate(([0], np.cumsum(sizes[:period])))
+    span = int(cum[-1])
+    lo, hi = arr[2:], arr[3:]  # the length bytes, as arrays indexed by record offset
+    proved: list[np.ndarray] = []
+    pos = start
+    periods = _RUN_MIN  # predicted at once: grows while the run holds
+    while pos < end:
+        # offsets and sizes of `periods` periods from pos (the pattern does not depend on pos)
+        base = (np.arange(periods, dtype=np.int64)[:, None] * span + cum[:-1]).reshape(-1)
+        want = np.tile(sizes[:period], periods)
+        m = int(np.searchsorted(base, end - pos))
+        offs = base[:m] + pos
+        got = _SIZES_NP[arr.take(offs)] + lo.take(offs) + _HIGH[hi.take(offs)]
+        bad = np.flatnonzero(got != want[:m])
+        upto = int(bad[0]) + 1 if bad.size else m  # offs[:upto] are on the chain
+        last = int(offs[upto - 1] + got[upto - 1])
+        if last > n:  # the last one does not fit or is unknown: not proved
+            proved.append(offs[: upto - 1])
+            return _join(proved), int(offs[upto - 1])
+        proved.append(offs[:upto])
+        pos = last
+        if bad.size:
+            break
+        periods = min(periods * 4, (end - pos) // span + 1)
+    return _join(proved), pos
+
+
+def _walk_fast(buf: bytes, arr: np.ndarray, start: int, end: int) -> tuple[np.ndarray, int, bool]:
+    """The record chain from `start` (a record start) over [start, end), in numpy.
+
+    The stretch is cut into segments of `_SEGMENT` bytes. In each segment (but the first) a
+    walker starts at the first offset of its first `_PROBE` bytes from which `_PROBE_STEPS`
+    headers in a row chain onto known record types, and all walkers follow their chains in
+    lockstep, one record per numpy step, past the next walker's start. A walker that lands
+    exactly on the next one's start hands over to it: since the first walker starts on the
+    chain, every walker reached by an unbroken series of hand-overs is on it too. Where a
+    hand-over fails (a walker started inside a record, a record spans segments, damage) the
+    chain is followed record by record from where the last good walker stopped until it meets
+    a walker's start again (`_resync`).
+
+    Returns the offsets proved (records that fit, starting before `end`), the offset after the
+    last of them (a record start, or the end of a record that reaches past `end`), and whether
+    the whole stretch was proved. `end` must be at most len(buf) - 3.
+    """
+    n = arr.size
+    k_seg = max(1, (end - start) // _SEGMENT)
+    starts = np.array([start], dtype=np.int64)
+    if k_seg > 1:
+        found = _walker_starts(arr, start + _SEGMENT, k_seg - 1)
+        starts = np.concatenate((starts, found[found >= 0]))
+    stops = np.append(starts[1:], end)
+    sizes, high = _SIZES_NP, _HIGH
+    lo, hi = arr[2:], arr[3:]  # the length bytes, as arrays indexed by record offset
+    pos = starts
+    steps = [pos]
+    for k in range(_SEGMENT // 4 + 1):
+        # take(mode="clip"): a walker past the end (or on an unknown type) reads garbage, but
+        # it has passed its stop, and what it reads there is never used.
+        pos = pos + sizes[arr.take(pos, mode="clip")] + lo.take(pos, mode="clip") + high[
+            hi.take(pos, mode="clip")
+        ]
+        steps.append(pos)
+        if k % 4 == 3:
+            behind = int(np.count_nonzero(pos < stops))
+            # the last few stragglers (a segment without a walker of its own) are resynced
+            if not behind or (behind * 256 < pos.size and k >= _SEGMENT // 64):
+                break
+    paths = np.stack(steps)  # (step, walker): walker k's offsets down column k
+    inside = paths < stops
+    count = inside.sum(axis=0)  # records of each walker before its stop
+    reached = count < paths.shape[0]
+    after = paths[np.minimum(count, paths.shape[0] - 1), np.arange(starts.size)]
+    # where each walker stopped: its stop when it handed over, past it, or -1 (step bound)
+    after = np.where(reached, after, -1)
+    handed = after == stops
+    handed[-1] = end <= after[-1] <= n
+    bad = np.flatnonzero(~handed)
+    if not bad.size:
+        return paths.T[inside.T], int(after[-1]), True
+    walked = paths.T
+    pieces: list[np.ndarray] = []
+    k = 0
+    while True:
+        j_at = int(np.searchsorted(bad, k))
+        j = int(bad[j_at]) if j_at < bad.size else starts.size
+        if j > k:
+            pieces.append(walked[k:j][inside.T[k:j]])
+        if j == starts.size:
+            return _join(pieces), int(after[-1]), True
+        # Walker j is on the chain but did not hand over: follow the chain from there.
+        row = walked[j][inside[:, j]]
+        if after[j] > n:  # its last record does not fit or has an unknown type: not proved
+            pieces.append(row[:-1])
+            return _join(pieces), int(row[-1]), False
+        pieces.append(row)
+        p = int(after[j]) if after[j] >= 0 else int(walked[j][count[j] - 1])
+        if after[j] < 0:  # cut by the step bound: go on from its last offset
+            pieces[-1] = row[:-1]
+        nodes, p, k = _resync(buf, p, starts, j + 1, end)
+        pieces.append(nodes)
+        if k < 0:
+            return _join(pieces), p, p >= end
+
+
+def _walker_starts(arr: np.ndarray, first: int, count: int) -> np.ndarray:
+    """Per segment (`count` of `_SEGMENT` bytes from `first`), the first offset of its first
+    `_PROBE` bytes from which `_PROBE_STEPS` headers chain onto known types; -1 where none."""
+    n = arr.size
+    grid = arr[first : first + count * _SEGMENT].reshape(count, _SEGMENT)[:, :_PROBE]
+    # Walkers start on Data Blocks and Byte Arrays (nearly every record; compares are cheap).
+    mask = (grid == DATA) | (grid == ARRAY) | (grid == ARRAY_ALT)
+    found = np.full(count, -1, dtype=np.int64)
+    pending = np.arange(count)
+    sizes, high, known = _SIZES_NP, _HIGH, _KNOWN_LUT
+    for _ in range(_PROBE_ROUNDS):
+        col = (mask if pending.size == count else mask[pending]).argmax(axis=1)
+        has = mask[pending, col]
+        q = pending * _SEGMENT + col + first
+        cand = q
+        ok = has & known[arr[q]]
+        for _ in range(_PROBE_STEPS):
+            q = q + sizes[arr.take(q, mode="clip")] + arr.take(q + 2, mode="clip") + high[
+                arr.take(q + 3, mode="clip")
+            ]
+            ok &= (q == n) | ((q < n) & known[arr.take(q, mode="clip")])
+        found[pending[ok]] = cand[ok]
+        retry = has & ~ok
+        mask[pending[retry], col[retry]] = False
+        pending = pending[retry]
+        if not pending.size:
+            break
+    return found
+
+
+def _resync(buf: bytes, p: int, starts: np.ndarray, m: int, end: int) -> tuple[np.ndarray, int, int]:
+    """Follow the chain record by record from `p` (on it) until it meets a walker's start.
+
+    Returns the offsets walked, where it stopped, and the walker met (-1: none, at the end of
+    the stretch, at a record that does not fit or after `_RESYNC` bytes).
+    """
+    n = len(buf)
+    sizes = _SIZES
+    out: array[int] = array("q")
+    bound = min(end, p + _RESYNC)
+    nxt_start = int(starts[m]) if m < starts.size else end + 1
+    while p < bound:
+        if p >= nxt_start:
+            m = int(np.searchsorted(starts, p))
+            if m < starts.size and int(starts[m]) == p:
+                return _as_offsets(out), p, m
+            nxt_start = int(starts[m]) if m < starts.size else end + 1
+        nxt = p + sizes[buf[p]] + (buf[p + 2] | (buf[p + 3] << 8))
+        if nxt > n:
+            break
+        out.append(p)
+        p = nxt
+    return _as_offsets(out), p, -1
+
+
+def _as_offsets(offs: array[int]) -> np.ndarray:
+    return np.frombuffer(offs, dtype=np.int64) if len(offs) else _EMPTY
+
+
+def _join(pieces: list[np.ndarray]) -> np.ndarray:
+    pieces = [x for x in pieces if x.size]
+    if not pieces:
+        return _EMPTY
+    return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
 
 
 def framed_length(buf: bytes) -> int:
@@ -342,7 +659,8 @@ def column_names(comment: Sequence[str] | None, spec: FormatSpec, kind: str) -> 
 
 
 class _Parser:
-    def __init__(self, buf: bytes, path: str, salvage: bool) -> None:
+    def __init__(self, buf: bytes, path: str, salvage: bool, fast: bool = True) -> None:
+        self.fast = fast  # False: the reference walk only (tests compare the two)
         self.buf = buf
         self.n = len(buf)
         self.arr = np.frombuffer(buf, dtype=np.uint8)
@@ -368,8 +686,7 @@ class _Parser:
         window = self.n  # unbounded until a resynchronisation
         while pos < self.n:
             stop = pos + window if window < self.n else self.n
-            offs, stop_off, reason = _scan(self.buf, pos, stop)
-            found = np.frombuffer(offs, dtype=np.int64) if len(offs) else np.zeros(0, np.int64)
+            found, stop_off, reason = _scan(self.buf, pos, stop, fast=self.fast)
             err = self._commit(found)
             if err is not None:
                 pos = self._corrupt(*err)
@@ -467,10 +784,10 @@ class _Parser:
         if offs.size == 0:
             return None
         arr = self.arr
-        types = arr[offs]
-        idx = arr[offs + 1].astype(np.int64)
-        lens = arr[offs + 2].astype(np.int64) | (arr[offs + 3].astype(np.int64) << 8)
-        is_data = (types == DATA) | (types == ARRAY) | (types == ARRAY_ALT)
+        types = arr.take(offs)
+        idx = arr.take(offs + 1)
+        lens = arr.take(offs + 2) + _HIGH[arr.take(offs + 3)]
+        is_data = _DATA_LUT[types]
         ctrl = np.flatnonzero(~is_data)
         start_current = self.current.copy()
         n_versions0 = len(self.versions)
@@ -488,28 +805,38 @@ class _Parser:
                 ev_pos.append(p)
         # Which version is in force for each data record: the last event of its index before it.
         data_pos = np.flatnonzero(is_data[:err_pos])
-        d_idx = idx[data_pos]
-        vid = start_current[d_idx]
-        if ev_pos:
+        # The data records are usually one contiguous run (controls at the start and the end):
+        # then slices (views) stand for the gathers by data_pos.
+        run = data_pos.size and int(data_pos[-1]) - int(data_pos[0]) + 1 == data_pos.size
+        dsel = slice(int(data_pos[0]), int(data_pos[-1]) + 1) if run else data_pos
+        d_idx = idx[dsel]
+        if ev_pos and data_pos.size and ev_pos[-1] < data_pos[0]:
+            vid = self.current[d_idx]  # every definition before every data record: one gather
+        else:
+            vid = start_current[d_idx]
+        if ev_pos and data_pos.size and ev_pos[-1] >= data_pos[0]:
             ev_p = np.asarray(ev_pos, dtype=np.int64)
             ev_vid = np.arange(n_versions0, len(self.versions), dtype=np.int64)
-            ev_idx = idx[ev_p]
+            ev_idx = idx[ev_p].astype(np.int64)
             span = offs.size + 1
             ev_key = ev_idx * span + ev_p
             order = np.argsort(ev_key, kind="stable")
             ev_key, ev_vid, ev_idx = ev_key[order], ev_vid[order], ev_idx[order]
-            j = np.searchsorted(ev_key, d_idx * span + data_pos, side="right") - 1
+            j = np.searchsorted(ev_key, d_idx.astype(np.int64) * span + data_pos, side="right") - 1
             jc = np.clip(j, 0, None)
             hit = (j >= 0) & (ev_idx[jc] == d_idx)
             vid = np.where(hit, ev_vid[jc], vid)
-        sizes, array_ok = self._vsize, self._vbytes
-        vidc = np.clip(vid, 0, None)
-        has_spec = (vid >= 0) & (sizes[vidc] >= 0)
-        d_types = types[data_pos]
-        bad_undef = ~has_spec
-        bad_len = has_spec & (d_types == DATA) & (lens[data_pos] != sizes[vidc])
-        bad_arr = has_spec & (d_types != DATA) & ~array_ok[vidc]
-        bad = bad_undef | bad_len | bad_arr
+        # One lookup per record: the length its (version, kind) requires; -1 any (a Byte Array
+        # of a 1-byte format), -2 none (a Byte Array of another format), -3 no definition.
+        sizes = self._vsize
+        known_size = sizes >= 0
+        lut = np.full(2 * sizes.size + 2, -3, dtype=np.int64)
+        lut[2::2] = np.where(known_size, sizes, -3)
+        lut[3::2] = np.where(known_size, np.where(self._vbytes, -1, -2), -3)
+        d_types = types[dsel]
+        is_block = d_types == DATA
+        need = lut[vid * 2 + 2 + ~is_block]
+        bad = (need != lens[dsel]) & (need != -1)
         if bad.any():
             k = int(np.argmax(bad))
             p = int(data_pos[k])
@@ -517,13 +844,13 @@ class _Parser:
             name = TYPE_NAMES[int(types[p])]
             vspec = self.versions[int(vid[k])].spec if vid[k] >= 0 else None
             text = vspec.text if vspec is not None else ""
-            if bad_undef[k]:
+            if need[k] == -3:
                 err = "undefined_index", f"{name} for format index {index}, which has no definition"
-            elif bad_len[k]:
+            elif is_block[k]:
                 err = (
                     "length_mismatch",
                     f"Data Block of {int(lens[p])} bytes for format index {index}, "
-                    f"whose format {text!r} needs {int(sizes[vidc[k]])}",
+                    f"whose format {text!r} needs {int(need[k])}",
                 )
             else:
                 err = (
@@ -534,10 +861,13 @@ class _Parser:
             err_pos = p
         if err_pos < offs.size:
             self._rollback(int(offs[err_pos]), start_current, n_versions0, n_markers0)
-        keep = data_pos < err_pos
-        if keep.any():
-            kp = data_pos[keep]
-            self.chunks.append((offs[kp], types[kp], lens[kp], vid[keep]))
+        if run and err_pos == offs.size:  # all kept, contiguous: views
+            self.chunks.append((offs[dsel], types[dsel], lens[dsel], vid))
+        else:
+            keep = data_pos < err_pos
+            if keep.any():
+                kp = data_pos[keep]
+                self.chunks.append((offs[kp], types[kp], lens[kp], vid[keep]))
         self.record_count += err_pos
         if err is not None:
             return int(offs[err_pos]), err[0], err[1]
@@ -681,7 +1011,9 @@ class _Parser:
 
     def _finish(self) -> LogFile:
         streams: list[Stream] = []
-        if self.chunks:
+        if len(self.chunks) == 1:
+            offs, types, lens, vids = self.chunks[0]
+        elif self.chunks:
             offs = np.concatenate([c[0] for c in self.chunks])
             types = np.concatenate([c[1] for c in self.chunks])
             lens = np.concatenate([c[2] for c in self.chunks])
@@ -693,9 +1025,15 @@ class _Parser:
         key_of: dict[tuple[int, str, str, tuple[str, ...]], int] = {}
         stream_keys: list[tuple[int, str, tuple[str, ...], int]] = []
         pair = vids * 2 + (~is_block).astype(np.int64)
-        uniq, first = np.unique(pair, return_index=True)
+        counts = np.bincount(pair) if pair.size else np.zeros(0, dtype=np.int64)
+        present = np.flatnonzero(counts)
+        few = present.size <= _FEW
+        if few:  # the usual case: a handful of formats; no sort over all records
+            first = np.array([int(np.argmax(pair == pv)) for pv in present.tolist()], dtype=np.int64)
+        else:
+            present, first = np.unique(pair, return_index=True)
         stream_of_pair: dict[int, int] = {}
-        for pv in uniq[np.argsort(first, kind="stable")].tolist():
+        for pv in present[np.argsort(first, kind="stable")].tolist():
             vid, kind = pv // 2, ("array" if pv % 2 else "block")
             spec = self.versions[vid].spec
             assert spec is not None
@@ -705,15 +1043,22 @@ class _Parser:
                 key_of[key] = len(stream_keys)
                 stream_keys.append((self.versions[vid].index, kind, columns, vid))
             stream_of_pair[pv] = key_of[key]
-        sid = np.zeros(offs.size, dtype=np.int64)
-        if uniq.size:
-            lut = np.array([stream_of_pair[int(pv)] for pv in uniq], dtype=np.int64)
-            sid = lut[np.searchsorted(uniq, pair)]
-        order = np.argsort(sid, kind="stable")
-        bounds = np.searchsorted(sid[order], np.arange(len(stream_keys) + 1))
+        lut = np.zeros(counts.size, dtype=np.int64)
+        for pv, sv in stream_of_pair.items():
+            lut[pv] = sv
+        sid = lut[pair]
+        groups: list[slice | np.ndarray]
+        if len(stream_keys) == 1:
+            groups = [slice(None)]
+        elif len(stream_keys) <= _FEW:
+            groups = [np.flatnonzero(sid == k) for k in range(len(stream_keys))]
+        else:
+            order = np.argsort(sid, kind="stable")
+            bounds = np.searchsorted(sid[order], np.arange(len(stream_keys) + 1))
+            groups = [order[bounds[k] : bounds[k + 1]] for k in range(len(stream_keys))]
         numbers: dict[int, int] = {}
         for s, (index, kind, columns, vid) in enumerate(stream_keys):
-            rows = order[bounds[s] : bounds[s + 1]]
+            rows = groups[s]
             numbers[index] = numbers.get(index, 0) + 1
             spec = self.versions[vid].spec
             assert spec is not None
@@ -760,11 +1105,9 @@ class _Parser:
     def _times(self, offs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if offs.size == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float64)
-        win = sliding_window_view(self.arr, 8)[offs + 4]
+        win = _rows(self.arr, offs + 4, 8)
         t = win.view(np.dtype([("s", "<i4"), ("ns", "<u4")])).reshape(-1)
-        sec = t["s"].astype(np.int64)
-        nsec = t["ns"].astype(np.int64)
-        return sec * _NS + nsec, sec.astype(np.float64) + nsec.astype(np.float64) / 1e9
+        return _split_times(t["s"], t["ns"])
 
     def _block(
         self,
@@ -776,16 +1119,22 @@ class _Parser:
         offs: np.ndarray,
         lens: np.ndarray,
     ) -> Stream:
-        time_ns, time_s = self._times(offs)
         fields = [(c, d) for c, d in zip(columns, spec.field_dtypes, strict=True)]
-        out = np.empty(offs.size, dtype=np.dtype([("time_s", "<f8"), *fields]))
-        out["time_s"] = time_s
-        if offs.size and spec.size:
-            raw = sliding_window_view(self.arr, spec.size)[offs + TIMED_SIZE]
-            packed = raw.view(spec.dtype(columns)).reshape(-1)
-            for c in columns:
-                out[c] = packed[c]
-        return Stream(index, "block", spec, columns, number, def_off, out, time_ns, offs)
+        dtype = np.dtype([("time_s", "<f8"), *fields])  # packed: 8 bytes, then the record's
+        if not offs.size:
+            out = np.empty(0, dtype=dtype)
+            time_ns = np.zeros(0, np.int64)
+        else:
+            # One gather of every record's TIME and fields, which already have the layout of a
+            # row (TIME is 8 bytes, like time_s); then TIME is replaced by time_s in place.
+            rows = _rows(self.arr, offs + 4, 8 + spec.size)
+            raw = rows.view(
+                np.dtype({"names": ["s", "ns"], "formats": ["<i4", "<u4"], "itemsize": 8 + spec.size})
+            ).reshape(-1)
+            time_ns, time_s = _split_times(raw["s"], raw["ns"])
+            out = rows.view(dtype).reshape(-1)
+            out["time_s"] = time_s
+        return Stream(index, "block", spec, columns, number, def_off, time_ns, offs, _data=out)
 
     def _array(
         self,
@@ -798,24 +1147,58 @@ class _Parser:
         lens: np.ndarray,
     ) -> Stream:
         time_ns, time_s = self._times(offs)
-        total = int(lens.sum())
-        dtype = spec.field_dtypes[0]
-        out = np.empty(
-            total,
-            dtype=np.dtype(
-                [("time_s", "<f8"), ("record", "<u4"), ("element", "<u2"), (columns[0], dtype)]
-            ),
-        )
-        before = np.cumsum(lens) - lens
-        rep_before = np.repeat(before, lens)
-        positions = np.repeat(offs + TIMED_SIZE, lens) + (np.arange(total) - rep_before)
-        out[columns[0]] = self.arr[positions].view(dtype)
-        out["time_s"] = np.repeat(time_s, lens)
-        out["record"] = np.repeat(np.arange(offs.size), lens)
-        out["element"] = np.arange(total) - rep_before
+        lens = lens.astype(np.int64)
+        values = _gather_elements(self.arr, offs + TIMED_SIZE, lens).view(spec.field_dtypes[0])
         return Stream(
-            index, "array", spec, columns, number, def_off, out, time_ns, offs, lens.copy()
+            index, "array", spec, columns, number, def_off, time_ns, offs,
+            lengths=lens.copy(), values=values, time_s=time_s,
         )
+
+
+def _rows(arr: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """arr[start : start + width] for every start, as the rows of a (len(starts), width) array.
+
+    Gathered as one `width`-byte void item per row (an unaligned view of the buffer), which
+    numpy copies as a block: several times faster than rows of a sliding-window view."""
+    items = np.ndarray((arr.size - width + 1,), dtype=f"V{width}", buffer=arr, strides=(1,))
+    return items[starts].view(np.uint8).reshape(starts.size, width)
+
+
+def _gather_elements(arr: np.ndarray, starts: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """The bytes arr[starts[i] : starts[i] + lens[i]] of every record, one after the other.
+
+    Raw bytes of one device come in a few lengths: the records of each common length are
+    copied as whole rows (one block copy per record, gathered and scattered as void items);
+    the rest element by element.
+    """
+    total = int(lens.sum())
+    out = np.empty(total, dtype=np.uint8)
+    if not total:
+        return out
+    before = np.cumsum(lens) - lens
+    rest = lens > 0
+    counts = np.bincount(lens)
+    for width in np.argsort(counts)[::-1][:_ROW_GROUPS].tolist():
+        if width == 0 or counts[width] * 20 < lens.size:
+            break
+        group = lens == width
+        rows = np.ndarray((arr.size - width + 1,), dtype=f"V{width}", buffer=arr, strides=(1,))
+        slots = np.ndarray((total - width + 1,), dtype=f"V{width}", buffer=out, strides=(1,))
+        slots[before[group]] = rows[starts[group]]
+        rest &= ~group
+    if rest.any():
+        r_starts, r_lens, r_before = starts[rest], lens[rest], before[rest]
+        r_first = np.cumsum(r_lens) - r_lens
+        step = np.arange(int(r_lens.sum())) - np.repeat(r_first, r_lens)
+        out[np.repeat(r_before, r_lens) + step] = arr[np.repeat(r_starts, r_lens) + step]
+    return out
+
+
+def _split_times(sec: np.ndarray, nsec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact int64 ns and float64 seconds of TIME fields."""
+    s64 = sec.astype(np.int64)
+    ns64 = nsec.astype(np.int64)
+    return s64 * _NS + ns64, s64.astype(np.float64) + ns64.astype(np.float64) / 1e9
 
 
 def read_log_bytes(data: bytes, *, name: str = "<bytes>", salvage: bool = False) -> LogFile:

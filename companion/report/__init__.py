@@ -3,13 +3,21 @@
 `companion logs report FLIGHT_DIR` writes PNG figures and one self-contained HTML page;
 `companion logs view FLIGHT_DIR` replays the flight into rerun (companion.liveview).
 User documentation: docs/report.md.
+
+The names below are loaded on first use (PEP 562): importing this package, as the CLI does for
+every `companion ...` command when it builds its parser, must not import matplotlib (about half
+a second) for commands that draw nothing.
 """
 
 from __future__ import annotations
 
-from companion.report.figures import FIGURES, FigureSpec, MissingData
-from companion.report.flight import FlightData, LogStatus, load_flight
-from companion.report.report import BuiltFigure, ReportResult, build_figures, generate_report
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from companion.report.figures import FIGURES, FigureSpec, MissingData
+    from companion.report.flight import FlightData, LogStatus, load_flight
+    from companion.report.report import BuiltFigure, ReportResult, build_figures, generate_report
 
 __all__ = [
     "FIGURES",
@@ -23,3 +31,29 @@ __all__ = [
     "generate_report",
     "load_flight",
 ]
+
+_HOME = {
+    "FIGURES": "figures",
+    "FigureSpec": "figures",
+    "MissingData": "figures",
+    "FlightData": "flight",
+    "LogStatus": "flight",
+    "load_flight": "flight",
+    "BuiltFigure": "report",
+    "ReportResult": "report",
+    "build_figures": "report",
+    "generate_report": "report",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _HOME.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

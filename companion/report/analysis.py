@@ -6,7 +6,6 @@ the report draws.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import tempfile
@@ -261,12 +260,7 @@ CSV_SAMPLE_RECORDS = 20_000
 
 def _head(stream: Stream, k: int) -> Stream:
     """The first `k` records of a stream, as a stream."""
-    if stream.kind == "array" and stream.lengths is not None:
-        n_values = int(stream.lengths[:k].sum())
-        return dataclasses.replace(stream, data=stream.data[:n_values], time_ns=stream.time_ns[:k],
-                                   offsets=stream.offsets[:k], lengths=stream.lengths[:k])
-    return dataclasses.replace(stream, data=stream.data[:k], time_ns=stream.time_ns[:k],
-                               offsets=stream.offsets[:k])
+    return stream.head(k)
 
 
 def csv_size_bytes(st: LogStatus, sample_records: int = CSV_SAMPLE_RECORDS) -> tuple[int, bool] | None:
