@@ -150,9 +150,6 @@ class LockstepClock(Clock):
             self._wait(None, deadline_ns, stop)
         return stop.is_set()
 
-    def sleep(self, duration_s: float, stop: threading.Event) -> bool:
-        return self.wait_until_ns(self.now_ns + int(duration_s * 1e9), stop)
-
     def wait_event(self, event: threading.Event, timeout_s: float) -> bool:
         if not event.is_set():
             self._wait(event.is_set, self.now_ns + int(timeout_s * 1e9), None)

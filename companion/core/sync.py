@@ -10,12 +10,14 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Generic, TypeVar
+from typing import Generic, TypeVar
 
-if TYPE_CHECKING:
-    from companion.core.clock import Clock
+from companion.core.clock import Clock
 
 T = TypeVar("T")
+
+_HOST = Clock()
+"""The host's own time (scale 1): what a wait without a clock is measured in."""
 
 
 class DataSlot(Generic[T]):
@@ -78,19 +80,10 @@ class WaitableSlot(DataSlot[T]):
 
         With a `clock`, the timeout is in its seconds and the wait is the clock's (scaled, or
         a lockstep flight's); without, host seconds."""
-        if clock is not None:
-            with self._cond:
-                if not clock.wait_for(self._cond, lambda: self._version > seen_version,
-                                      timeout_s):
-                    return None
-                return self._value, self._version
-        deadline = time.monotonic() + timeout_s
         with self._cond:
-            while self._version <= seen_version:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
+            if not (clock or _HOST).wait_for(self._cond, lambda: self._version > seen_version,
+                                             timeout_s):
+                return None
             return self._value, self._version
 
     def wake_all(self) -> None:
@@ -140,20 +133,11 @@ class MessageQueue(Generic[T]):
     def get(self, timeout_s: float, clock: Clock | None = None) -> T | None:
         """Wait up to timeout_s for an item; None on timeout. With a `clock`, the timeout is
         in its seconds and the wait is the clock's; without, host seconds."""
-        if clock is not None:
-            with self._cond:
-                items = self._items
-                if not clock.wait_for(self._cond, lambda: bool(items), timeout_s):
-                    return None
-                return items.popleft()
-        deadline = time.monotonic() + timeout_s
+        items = self._items
         with self._cond:
-            while not self._items:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return None
-                self._cond.wait(remaining)
-            return self._items.popleft()
+            if not (clock or _HOST).wait_for(self._cond, lambda: bool(items), timeout_s):
+                return None
+            return items.popleft()
 
     def drain(self) -> list[T]:
         with self._cond:

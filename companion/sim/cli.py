@@ -103,7 +103,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 def _campaign(args: argparse.Namespace) -> int:
     from datetime import UTC, datetime
 
-    from companion.sim.campaign import CampaignError, load_campaign, run_campaign
+    from companion.sim.campaign import CampaignError, FlightSpec, load_campaign, run_campaign
 
     try:
         specs = load_campaign(args.campaign)
@@ -116,8 +116,8 @@ def _campaign(args: argparse.Namespace) -> int:
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out = args.campaign_dir or Path("campaigns") / f"{args.campaign.stem}-{stamp}"
 
-    def progress(spec: object, n: int, total: int) -> None:
-        s = spec.record()  # type: ignore[attr-defined]
+    def progress(spec: FlightSpec, n: int, total: int) -> None:
+        s = spec.record()
         state = "ok" if s["exit_code"] == 0 else f"FAILED ({s['error']})"
         print(f"[{n}/{total}] flight {s['index']}: {state}, {s['wall_s']} s, "
               f"{s['restarts']} restarts", file=sys.stderr)

@@ -462,8 +462,8 @@ class ManagedThread:
             if on_exit is not None:
                 on_exit()
 
-    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int = 1,
-                       clock_ns: int = 0) -> None:
+    def _account_cycle(self, t0_ns: int, step_ns: int, budget_ns: int, count: int,
+                       clock_ns: int) -> None:
         """`t0_ns` and `step_ns` in host time (what the step cost); `clock_ns` the runtime's
         time at the end of the cycle, from which the rate is measured (exact in lockstep)."""
         if self._last_cycle_start_ns:
