@@ -37,10 +37,19 @@ class EstimatorCore:
     `params` are the estimator's parameters by suffix (`INIT_S`, `GYR_NSD`, `GPS_HSTD`, ...:
     see `EstimatorThread.declare_params`); `home_lla` fixes the NED origin (None: the first GPS
     fix); `eskf_kwargs` are extra `Eskf` keyword arguments (tuning experiments).
+
+    `dt_source` says where a sample's period comes from. ``"counter"`` (the flight): the IMU's
+    own frame counter times `IMU_PERIOD_S`, immune to the host's reception jitter. ``"time"``
+    (replayed logs of other IMUs, any rate): the difference of consecutive `ImuSample.t_ns`,
+    which such logs stamp at the sensor.
     """
 
     def __init__(self, params: Mapping[str, float], home_lla: tuple[float, float, float] | None,
-                 *, eskf_kwargs: Mapping[str, Any] | None = None) -> None:
+                 *, eskf_kwargs: Mapping[str, Any] | None = None,
+                 dt_source: str = "counter") -> None:
+        if dt_source not in ("counter", "time"):
+            raise ValueError(f"EstimatorCore: dt_source must be 'counter' or 'time', got {dt_source!r}")
+        self.dt_source = dt_source
         self.p: dict[str, float] = {k: float(v) for k, v in params.items()}
         self.eskf_kwargs = dict(eskf_kwargs or {})
         self.frame = NedFrame(*home_lla) if home_lla is not None else None
@@ -52,6 +61,8 @@ class EstimatorCore:
         self.horizon_used = 0
         self.last_imu: ImuSample | None = None
         self._last_counter: int | None = None
+        self._last_t_ns: int | None = None
+        self._first_t_ns: int | None = None
         self._gyro: list[tuple[float, float, float]] = []
         self._accel: list[tuple[float, float, float]] = []
         self._fix: GpsFix | None = None
@@ -94,14 +105,17 @@ class EstimatorCore:
             return False
         need = max(1, int(self.p["INIT_S"] / IMU_PERIOD_S))
         for s in samples:
-            if len(self._gyro) < need:
+            if not self._enough_init(need):
+                if self._first_t_ns is None:
+                    self._first_t_ns = s.t_ns
                 self._gyro.append(s.rates_rad_s)
                 self._accel.append(s.accel_m_s2)
                 self._last_counter = s.counter
+                self._last_t_ns = s.t_ns
                 self.last_imu = s
         if fix is not None and fix.fix > 0 and fix.lat_deg is not None:
             self._fix = fix
-        if len(self._gyro) < need or self._fix is None:
+        if not self._enough_init(need) or self._fix is None:
             return False
         first = self._fix
         if self.frame is None:
@@ -122,17 +136,30 @@ class EstimatorCore:
         self.filter = f
         return True
 
+    def _enough_init(self, need: int) -> bool:
+        """The initial phase has its `INIT_S`: in samples of the device, or in sample time."""
+        if self.dt_source == "counter":
+            return len(self._gyro) >= need
+        if self._first_t_ns is None or self._last_t_ns is None:
+            return False
+        return (self._last_t_ns - self._first_t_ns) / 1e9 >= self.p["INIT_S"]
+
     # ------------------------------------------------------------------ one cycle
     def predict(self, samples: Sequence[ImuSample]) -> int:
-        """Integrate every sample, with the period from the IMU's own frame counter."""
+        """Integrate every sample, with its period from the IMU's frame counter or its time."""
         f = self.filter
         if f is None:
             return 0
         used = 0
+        by_time = self.dt_source == "time"
         for s in samples:
-            dt = IMU_PERIOD_S
-            if self._last_counter is not None:
-                dt = ((s.counter - self._last_counter) % COUNTER_WRAP) * IMU_PERIOD_S
+            if by_time:
+                dt = IMU_PERIOD_S if self._last_t_ns is None else (s.t_ns - self._last_t_ns) / 1e9
+                self._last_t_ns = s.t_ns
+            else:
+                dt = IMU_PERIOD_S
+                if self._last_counter is not None:
+                    dt = ((s.counter - self._last_counter) % COUNTER_WRAP) * IMU_PERIOD_S
             self._last_counter = s.counter
             if dt <= 0.0:
                 continue  # a repeated frame
