@@ -13,11 +13,27 @@ one is built so that cannot take the thread down:
   GPS rejected again and again) is an *estimator fault*: it is counted, logged with a reason,
   and repaired by a reset. No method raises on bad data; bad inputs are rejected and counted.
 
-Error state (15), in this order (see ``IDX_*``): position (m, NED), velocity (m/s, NED),
+Error state (16), in this order (see ``IDX_*``): position (m, NED), velocity (m/s, NED),
 attitude error (rad, rotation vector in NED: ``q_true = exp(dtheta) * q``), gyro bias (rad/s),
-accelerometer bias (m/s^2). With the attitude error in the navigation frame the gyro and
-accelerometer noises enter isotropically, so the process noise does not depend on attitude
-and is computed once per sample period.
+accelerometer bias (m/s^2), and the GPS receiver's unknown output delay (s). With the attitude
+error in the navigation frame the gyro and accelerometer noises enter isotropically, so the
+process noise does not depend on attitude and is computed once per propagation period.
+
+GPS latency is a state because no datasheet gives it and it changes with the receiver's
+settings: a fix is the receiver's solution for an instant some 50-300 ms before its first byte,
+and a filter told the wrong delay turns every turn into a velocity error (0.1 s of error at
+5 m/s^2 of centripetal acceleration is 0.5 m/s). The fix is compared with the state history at
+``now - (measured transfer + estimated delay)``; the innovation's sensitivity to the delay is
+the velocity (position rows) and the acceleration (velocity rows) at that instant, so the delay
+becomes observable whenever the aircraft accelerates, and stays put (with its uncertainty) in
+straight flight, where it does not matter.
+
+Rate independence: the nominal state is integrated sample by sample, at whatever rate the IMU
+runs (50 Hz to 1 kHz), composing each sample's rotation exactly (the coning motion between
+samples is captured by the composition) and rotating each sample's velocity increment with
+the mid-sample attitude (sculling to second order). The covariance, the expensive part, is
+propagated once per ``cov_period_s`` from the increments accumulated over that period, so its
+cost does not grow with the IMU rate; it is brought up to date before every measurement.
 
 Why not filterpy's ``KalmanFilter``: its state is additive (``x + K y``) and its transition
 acts on the state itself, while here the transition acts on an error state and the correction
@@ -55,7 +71,7 @@ from companion.estimation.quat import (
 
 log = logging.getLogger(__name__)
 
-N_STATES = 15
+N_STATES = 16
 IDX_POS = slice(0, 3)
 IDX_VEL = slice(3, 6)
 IDX_ATT = slice(6, 9)
@@ -63,6 +79,11 @@ IDX_GYRO_BIAS = slice(9, 12)
 IDX_ACCEL_BIAS = slice(12, 15)
 IDX_YAW = 8
 """Heading error: the NED-down component of the attitude error."""
+IDX_GPS_LAG = 15
+"""The GPS receiver's unknown output delay, s (beyond the transfer time the driver measures)."""
+FIXED_LAG_VAR = 1e-12
+"""Variance held by a delay that is not estimated: uncoupled from every other state, so the
+covariance stays positive definite and nothing ever moves it."""
 
 
 @dataclass(frozen=True)
@@ -113,6 +134,9 @@ class EskfState:
     last_fault_reason: str
     gps_rejections_in_row: int
     rejected_inputs: int
+    gps_lag_s: float = 0.0
+    """Estimated GPS output delay beyond the measured transfer time."""
+    gps_lag_std_s: float = 0.0
 
 
 class Eskf:
@@ -141,6 +165,14 @@ class Eskf:
         yaw_align_min_speed_m_s: ground speed above which the GPS course aligns the heading.
         yaw_align_std_rad: 1-sigma heading error right after course alignment (sideslip and
             wind crab).
+        gps_lag_s: the GPS receiver's output delay assumed at the start (beyond the transfer
+            time the caller measures and passes to ``update_gps``).
+        gps_lag_std_s: 1-sigma of that guess; the delay is then estimated online. 0 keeps it
+            fixed (not estimated).
+        gps_lag_rw_s_rt_s: random walk of the delay (receivers change it with their load).
+        max_gps_lag_s: the estimate is clipped to 0..this.
+        cov_period_s: the covariance is propagated once per this much IMU time (samples in
+            between only accumulate); the nominal state follows every sample.
         history_s: how far back state history is kept to place late measurements.
         max_dt_s: longer prediction gaps are not integrated (the IMU data is missing); the
             covariance is grown for the gap instead and the gap counted.
@@ -172,6 +204,11 @@ class Eskf:
         horizon_std_rad: float = 0.05,
         yaw_align_min_speed_m_s: float = 5.0,
         yaw_align_std_rad: float = 0.3,
+        gps_lag_s: float = 0.0,
+        gps_lag_std_s: float = 0.0,
+        gps_lag_rw_s_rt_s: float = 1e-3,
+        max_gps_lag_s: float = 0.5,
+        cov_period_s: float = 0.01,
         history_s: float = 1.0,
         max_dt_s: float = 0.1,
         max_gyro_rad_s: float = 35.0,
@@ -181,9 +218,13 @@ class Eskf:
     ) -> None:
         settings = dict(locals())
         settings.pop("self")
+        may_be_zero = ("gps_lag_s", "gps_lag_std_s")
         for name, value in settings.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            if not (isinstance(value, int | float) and math.isfinite(value)
+                    and (value > 0 or (value == 0 and name in may_be_zero))):
                 raise ValueError(f"Eskf: {name} must be a finite number > 0, got {value!r}")
+        if gps_lag_s > max_gps_lag_s:
+            raise ValueError(f"Eskf: gps_lag_s {gps_lag_s!r} exceeds max_gps_lag_s {max_gps_lag_s!r}")
         for name in ("gps_gate_prob", "attitude_gate_prob"):
             if not settings[name] < 1.0:
                 raise ValueError(f"Eskf: {name} must be < 1, got {settings[name]!r}")
@@ -206,6 +247,12 @@ class Eskf:
         self.horizon_std_rad = float(horizon_std_rad)
         self.yaw_align_min_speed_m_s = float(yaw_align_min_speed_m_s)
         self.yaw_align_std_rad = float(yaw_align_std_rad)
+        self.gps_lag_s = float(gps_lag_s)
+        self.gps_lag_std_s = float(gps_lag_std_s)
+        self.gps_lag_rw_s_rt_s = float(gps_lag_rw_s_rt_s)
+        self.max_gps_lag_s = float(max_gps_lag_s)
+        self.cov_period_s = float(cov_period_s)
+        self._lag_on = self.gps_lag_std_s > 0.0
         self.history_s = float(history_s)
         self.max_dt_s = float(max_dt_s)
         self.max_gyro_rad_s = float(max_gyro_rad_s)
@@ -236,11 +283,17 @@ class Eskf:
         self._bg = np.zeros(3)
         self._ba = np.zeros(3)
         self._p = np.eye(N_STATES)
+        self._lag = self.gps_lag_s
         self._f_nav = np.array((0.0, 0.0, -self.gravity_m_s2))
+        # increments since the covariance was last propagated (see cov_period_s)
+        self._pend_dt = 0.0
+        self._pend_dv = np.zeros(3)
+        self._pend_rot = np.eye(3)
         self._rot = np.eye(3)
-        self._history: deque[tuple[float, FloatArray, FloatArray, tuple[float, ...]]] = deque(
-            maxlen=max(8, int(self.history_s * 1000))
-        )
+        # (time, position, velocity, attitude, acceleration NED) after each sample
+        self._history: deque[
+            tuple[float, FloatArray, FloatArray, tuple[float, ...], FloatArray]
+        ] = deque(maxlen=max(8, int(self.history_s * 1000)))
         self._predicts = 0
         self._gps_rejections = 0
         self._att_rejections = 0
@@ -261,6 +314,7 @@ class Eskf:
         var[IDX_YAW] = self.init_yaw_std_rad**2 if self._yaw_aligned else 0.0
         var[IDX_GYRO_BIAS] = self.init_gyro_bias_std_rad_s**2
         var[IDX_ACCEL_BIAS] = self.init_accel_bias_std_m_s2**2
+        var[IDX_GPS_LAG] = self.gps_lag_std_s**2 if self._lag_on else FIXED_LAG_VAR
         return np.diag(var)
 
     def initialise(
@@ -341,6 +395,8 @@ class Eskf:
                 q[i, i] = self.gyro_bias_rw_rad_s_rt_s**2 * key
             for i in range(12, 15):
                 q[i, i] = self.accel_bias_rw_m_s2_rt_s**2 * key
+            if self._lag_on:
+                q[IDX_GPS_LAG, IDX_GPS_LAG] = self.gps_lag_rw_s_rt_s**2 * key
             if len(self._q_cache) > 64:
                 self._q_cache.clear()
             self._q_cache[key] = q
@@ -393,7 +449,8 @@ class Eskf:
         bg, ba = self._bg, self._ba
         wx, wy, wz = (g0 - bg[0]) * dt, (g1 - bg[1]) * dt, (g2 - bg[2]) * dt
         f_body = np.array((a0 - ba[0], a1 - ba[1], a2 - ba[2]))
-        rot0 = self._rot
+        if self._pend_dt == 0.0:
+            self._pend_rot = self._rot  # attitude at the start of the covariance period
         # attitude: exact exponential map; velocity uses the mid-period attitude
         q_mid = quat_multiply_f(*self._q, *quat_from_rotvec_f(0.5 * wx, 0.5 * wy, 0.5 * wz))
         q_new = quat_multiply_f(*self._q, *quat_from_rotvec_f(wx, wy, wz))
@@ -408,24 +465,53 @@ class Eskf:
         self._f_nav = f_nav
         self._t += dt
         self._accel_lp += 0.02 * (np.array((a0, a1, a2)) - self._accel_lp)
+        self._pend_dt += dt
+        self._pend_dv += f_nav * dt
+        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q, acc))
+        self._predicts += 1
+        if self._pend_dt >= self.cov_period_s - 1e-9:
+            self._propagate_covariance()
+            healthy = self._after_step(check_pd=self._predicts % self.pd_check_every == 0)
+        else:
+            healthy = self._state_finite()
+        return healthy and not held
 
+    def _propagate_covariance(self) -> None:
+        """Move the covariance over the IMU time accumulated since it was last propagated.
+
+        One transition for the whole period: the velocity error picks up the accumulated
+        velocity increment's sensitivity to attitude, and the bias errors act through the
+        attitude at the period's start (over 10-20 ms the difference is second order).
+        """
+        dt = self._pend_dt
+        if dt <= 0.0:
+            return
         f = self._f
         f[0, 3] = f[1, 4] = f[2, 5] = dt
-        fx, fy, fz = float(f_nav[0]) * dt, float(f_nav[1]) * dt, float(f_nav[2]) * dt
-        # d(dv)/d(dtheta) = -[R f]x
+        fx, fy, fz = (float(c) for c in self._pend_dv)
+        # d(dv)/d(dtheta) = -[dv_nav]x
         f[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
+        rot0 = self._pend_rot
         f[3:6, 12:15] = rot0 * -dt
         f[6:9, 9:12] = rot0 * -dt
         p = f @ self._p @ f.T
         p += self._process_noise(dt)
         self._p = p
-        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q))
-        self._predicts += 1
-        healthy = self._after_step(check_pd=self._predicts % self.pd_check_every == 0)
-        return healthy and not held
+        self._pend_dt = 0.0
+        self._pend_dv[:] = 0.0
+
+    def _state_finite(self) -> bool:
+        """The cheap part of the health check, for samples that did not move the covariance."""
+        if all(math.isfinite(c) for c in self._q) and math.isfinite(
+            float(self._pos.sum() + self._vel.sum())
+        ):
+            return True
+        self._fault("non-finite state")
+        return False
 
     def _coast(self, dt_s: float) -> None:
         """Cover a gap in the IMU data: constant velocity, covariance grown for the gap."""
+        self._propagate_covariance()
         self._pos += self._vel * dt_s
         self._t += dt_s
         steps = max(1, math.ceil(dt_s / self.max_dt_s))
@@ -454,13 +540,16 @@ class Eskf:
         vel_std_m_s: float | Sequence[float] | FloatArray,
         latency_s: float = 0.0,
     ) -> UpdateResult:
-        """Fuse a GPS fix valid ``latency_s`` before the latest IMU sample.
+        """Fuse a GPS fix handed off ``latency_s`` before the latest IMU sample.
 
-        The fix is compared with the stored nominal state at its validity time (interpolated
-        from the last ``history_s`` of predictions); the resulting error is mapped to now
-        through the first-order transition over the latency (position error drifts with the
-        velocity error, velocity error with the attitude and accel-bias errors), and the
-        correction is applied to the current state. A fix older than the history is refused.
+        ``latency_s`` is what the caller knows (transfer and hand-off times); the fix is valid
+        that long plus the estimated receiver delay (``gps_lag_s``) before now. The fix is
+        compared with the stored nominal state at its validity time (interpolated from the
+        last ``history_s`` of predictions); the resulting error is mapped to now through the
+        first-order transition over the latency (position error drifts with the velocity
+        error, velocity error with the attitude and accel-bias errors), the delay error through
+        the velocity and acceleration at that instant, and the correction is applied to the
+        current state. A fix older than the history is refused.
         """
         if not self._initialised:
             return UpdateResult(False, "not_initialised")
@@ -476,10 +565,12 @@ class Eskf:
             self.rejected_inputs += 1
             log.debug("GPS fix refused: %s", exc)
             return UpdateResult(False, "bad_input")
+        self._propagate_covariance()
+        latency += self._lag
         past = self._state_at(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
-        pos_then, vel_then, _ = past
+        pos_then, vel_then, _, acc_then = past
         self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
 
         speed = math.hypot(z_vel[0], z_vel[1])
@@ -496,6 +587,10 @@ class Eskf:
             fx, fy, fz = (float(c) * latency for c in self._f_nav)
             h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
             h[3:6, 12:15] = self._rot * latency
+        if self._lag_on:
+            # z = x(t - lag): a longer delay reads an older position and velocity
+            h[0:3, IDX_GPS_LAG] = -vel_then
+            h[3:6, IDX_GPS_LAG] = -acc_then
         r = np.diag(np.concatenate((p_std**2, v_std**2)))
         result = self._kalman_update(y, h, r, self.gps_gate)
         self._last_gps_innovation = y
@@ -539,6 +634,7 @@ class Eskf:
         ):
             self.rejected_inputs += 1
             return UpdateResult(False, "bad_input")
+        self._propagate_covariance()
         past = self._state_at(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
@@ -620,6 +716,8 @@ class Eskf:
         self._rot = rotmat_f(*self._q)
         self._bg = np.clip(self._bg + dx[IDX_GYRO_BIAS], -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s)
         self._ba = np.clip(self._ba + dx[IDX_ACCEL_BIAS], -self.max_accel_bias_m_s2, self.max_accel_bias_m_s2)
+        if self._lag_on:
+            self._lag = min(max(self._lag + float(dx[IDX_GPS_LAG]), 0.0), self.max_gps_lag_s)
         # error-reset Jacobian for a NED-frame attitude error: G = I + [dtheta/2]x
         if tx * tx + ty * ty + tz * tz > 1e-12:
             g = np.eye(3) + 0.5 * np.array(((0.0, -tz, ty), (tz, 0.0, -tx), (-ty, tx, 0.0)))
@@ -639,6 +737,7 @@ class Eskf:
         v_std: FloatArray,
     ) -> None:
         """Turn the attitude about NED-down so the heading equals the GPS course."""
+        self._propagate_covariance()
         roll, pitch, yaw = quat_to_euler_f(*self._q)
         delta = float(wrap_pi(course_rad - yaw))
         dq = quat_from_rotvec_f(0.0, 0.0, delta)
@@ -670,6 +769,10 @@ class Eskf:
         if not self._yaw_aligned:
             p[IDX_YAW, :] = 0.0
             p[:, IDX_YAW] = 0.0
+        if not self._lag_on:
+            p[IDX_GPS_LAG, :] = 0.0
+            p[:, IDX_GPS_LAG] = 0.0
+            p[IDX_GPS_LAG, IDX_GPS_LAG] = FIXED_LAG_VAR
         self._p = p
         diag = np.diagonal(p)
         # one sum per vector: NaN or infinity in any element makes it non-finite (this runs
@@ -743,6 +846,8 @@ class Eskf:
         self._rot = rotmat_f(*self._q)
         self._pos, self._vel = pos, vel
         self._p = self._initial_covariance()
+        self._pend_dt = 0.0
+        self._pend_dv[:] = 0.0
         self._history.clear()
         self._gps_rejections = 0
         self._att_rejections = 0
@@ -758,20 +863,26 @@ class Eskf:
     def _remember_good(self) -> None:
         self._last_good = (self._q, self._pos.copy(), self._vel.copy())
 
-    def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
-        """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
+    def _state_at(
+        self, t_s: float
+    ) -> tuple[FloatArray, FloatArray, tuple[float, ...], FloatArray] | None:
+        """Nominal position, velocity, attitude and acceleration (NED) at ``t_s`` from the
+        history (interpolated)."""
         if t_s >= self._t - 1e-9 or not self._history:
-            return self._pos.copy(), self._vel.copy(), self._q
+            acc = self._f_nav.copy()
+            acc[2] += self.gravity_m_s2
+            return self._pos.copy(), self._vel.copy(), self._q, acc
         newer = None
         for entry in reversed(self._history):
             if entry[0] <= t_s:
                 if newer is None:
-                    return entry[1].copy(), entry[2].copy(), entry[3]
+                    return entry[1].copy(), entry[2].copy(), entry[3], entry[4]
                 t0, t1 = entry[0], newer[0]
                 a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
                 pos = entry[1] + a * (newer[1] - entry[1])
                 vel = entry[2] + a * (newer[2] - entry[2])
-                return pos, vel, (newer[3] if a >= 0.5 else entry[3])
+                near = newer if a >= 0.5 else entry
+                return pos, vel, near[3], near[4]
             newer = entry
         return None
 
@@ -780,6 +891,32 @@ class Eskf:
     @property
     def initialised(self) -> bool:
         return self._initialised
+
+    def set_gps_lag(self, lag_s: float, std_s: float) -> bool:
+        """Restart the delay estimate from an operator's value (a parameter change).
+
+        ``std_s`` 0 fixes the delay at ``lag_s``. False (and nothing changed) on a value out
+        of ``0..max_gps_lag_s`` or a negative or non-finite ``std_s``.
+        """
+        lag, std = float(lag_s), float(std_s)
+        if not (math.isfinite(lag) and 0.0 <= lag <= self.max_gps_lag_s
+                and math.isfinite(std) and std >= 0.0):
+            self.rejected_inputs += 1
+            return False
+        self._propagate_covariance()
+        self.gps_lag_s, self.gps_lag_std_s = lag, std
+        self._lag, self._lag_on = lag, std > 0.0
+        self._q_cache.clear()
+        p = self._p
+        p[IDX_GPS_LAG, :] = 0.0
+        p[:, IDX_GPS_LAG] = 0.0
+        p[IDX_GPS_LAG, IDX_GPS_LAG] = std * std if self._lag_on else FIXED_LAG_VAR
+        return True
+
+    @property
+    def gps_lag_estimate_s(self) -> float:
+        """The receiver delay the filter currently applies on top of the measured latency."""
+        return self._lag
 
     @property
     def fault_log(self) -> list[EstimatorFault]:
@@ -813,11 +950,13 @@ class Eskf:
             last_fault_reason=self.last_fault_reason,
             gps_rejections_in_row=self._gps_rejections,
             rejected_inputs=self.rejected_inputs,
+            gps_lag_s=self._lag,
+            gps_lag_std_s=math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0)),
         )
 
     @property
     def covariance(self) -> FloatArray:
-        """The full 15x15 error-state covariance (a copy)."""
+        """The full error-state covariance, ``N_STATES`` square (a copy)."""
         return self._p.copy()
 
 

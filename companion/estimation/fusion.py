@@ -73,16 +73,21 @@ class EstimatorCore:
         kwargs: dict[str, Any] = {
             "gyro_noise_rad_s_rt_hz": p["GYR_NSD"], "accel_noise_m_s2_rt_hz": p["ACC_NSD"],
             "gyro_bias_rw_rad_s_rt_s": p["GB_RW"], "accel_bias_rw_m_s2_rt_s": p["AB_RW"],
-            "horizon_std_rad": p["HZN_STD"]}
+            "horizon_std_rad": p["HZN_STD"],
+            "gps_lag_s": p["GPS_LAG"], "gps_lag_std_s": p.get("GPS_LAGSD", 0.0)}
         if moving:
             kwargs.update(init_tilt_std_rad=0.6, init_gyro_bias_std_rad_s=0.02)
         kwargs.update(self.eskf_kwargs)
         return Eskf(**kwargs)
 
     def update_params(self, params: Mapping[str, float]) -> None:
-        """New parameter values; noise densities apply from the next prediction."""
+        """New parameter values; noise densities apply from the next prediction, a new GPS
+        delay or delay uncertainty restarts the delay estimate from it."""
+        lag_before = (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD"))
         self.p.update({k: float(v) for k, v in params.items()})
         f = self.filter
+        if f is not None and lag_before != (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD")):
+            f.set_gps_lag(self.p["GPS_LAG"], self.p.get("GPS_LAGSD", 0.0))
         if f is not None:
             f.gyro_noise_rad_s_rt_hz = self.p["GYR_NSD"]
             f.accel_noise_m_s2_rt_hz = self.p["ACC_NSD"]
@@ -183,7 +188,8 @@ class EstimatorCore:
         return pos, vel
 
     def fuse_gps(self, fix: GpsFix) -> tuple[UpdateResult, float] | None:
-        """Fuse one fix; returns the filter's verdict and the latency used, or None if unusable."""
+        """Fuse one fix; returns the filter's verdict and the whole latency applied (measured
+        plus the estimated receiver delay), or None if unusable."""
         f = self.filter
         if f is None or self.last_imu is None:
             return None
@@ -200,12 +206,14 @@ class EstimatorCore:
         # NMEA without $PASHR,POS carries no vertical velocity: leave it unconstrained rather
         # than claim the aircraft is level (0 m/s) while it climbs
         vel_std = (vel_h, vel_h, vel_h if fix.vd_m_s is not None else UNKNOWN_STD)
-        # age of the fix relative to the newest IMU sample: the receiver's own delay, the
-        # transfer measured by the driver, and the time since hand-off
+        # age of the fix relative to the newest IMU sample, as far as it is measured: the
+        # transfer measured by the driver and the time since hand-off; the receiver's own
+        # delay (GPS_LAG to start with) is the filter's to estimate
         device_s = fix.latency_s or 0.0
         since_handoff_s = (self.last_imu.t_ns - fix.t_ns) / 1e9
-        latency = max(0.0, self.p["GPS_LAG"] + device_s + since_handoff_s)
+        latency = max(0.0, device_s + since_handoff_s)
         res = f.update_gps(pos, vel, (hstd, hstd, vstd), vel_std, latency)
+        latency += f.gps_lag_estimate_s
         if res.accepted:
             self.gps_accepted += 1
         else:

@@ -71,7 +71,11 @@ class EstimatorThread(ManagedThread):
                         "GPS vertical position 1-sigma (GST altitude std used when larger)."),
             float_param(f"{p}_GPS_VEL", 0.15, 0.01, 10.0, "m/s", "GPS velocity 1-sigma."),
             float_param(f"{p}_GPS_LAG", 0.05, 0.0, 0.5, "s",
-                        "Receiver output delay beyond the latency the driver measures."),
+                        "Receiver output delay beyond the latency the driver measures: the "
+                        "starting guess, refined online unless GPS_LAGSD is 0."),
+            float_param(f"{p}_GPS_LAGSD", 0.1, 0.0, 0.5, "s",
+                        "1-sigma of the GPS_LAG guess; the filter estimates the delay from "
+                        "turns and accelerations. 0 trusts GPS_LAG as exact."),
             int_param(f"{p}_HZN_USE", 1, 0, 1, "",
                       "1 fuses horizon attitude (HORIZON_ATTITUDE / MAVLink) weighted by quality."),
             float_param(f"{p}_HZN_STD", 0.05, 0.001, 1.0, "rad",
