@@ -280,20 +280,18 @@ class Eskf:
         self._q = (1.0, 0.0, 0.0, 0.0)
         self._pos = np.zeros(3)
         self._vel = np.zeros(3)
-        self._bg = np.zeros(3)
-        self._ba = np.zeros(3)
+        self._set_biases(np.zeros(3), np.zeros(3))
         self._p = np.eye(N_STATES)
         self._lag = self.gps_lag_s
-        self._f_nav = np.array((0.0, 0.0, -self.gravity_m_s2))
+        self._f_nav_f = (0.0, 0.0, -self.gravity_m_s2)
         # increments since the covariance was last propagated (see cov_period_s)
         self._pend_dt = 0.0
-        self._pend_dv = np.zeros(3)
-        self._pend_rot = np.eye(3)
-        self._rot = np.eye(3)
-        # (time, position, velocity, attitude, acceleration NED) after each sample
-        self._history: deque[
-            tuple[float, FloatArray, FloatArray, tuple[float, ...], FloatArray]
-        ] = deque(maxlen=max(8, int(self.history_s * 1000)))
+        self._pend_dv_f = (0.0, 0.0, 0.0)
+        self._pend_q: tuple[float, ...] = self._q
+        # (time, position, velocity, attitude) after each sample
+        self._history: deque[tuple[float, FloatArray, FloatArray, tuple[float, ...]]] = deque(
+            maxlen=max(8, int(self.history_s * 1000))
+        )
         self._predicts = 0
         self._gps_rejections = 0
         self._att_rejections = 0
@@ -301,7 +299,7 @@ class Eskf:
         self._last_gps_nis = math.nan
         self._last_att_innovation = np.zeros(2)
         self._last_att_nis = math.nan
-        self._accel_lp = np.array((0.0, 0.0, -self.gravity_m_s2))
+        self._accel_lp_f = (0.0, 0.0, -self.gravity_m_s2)
         self._last_imu = (0.0, 0.0, 0.0, 0.0, 0.0, -self.gravity_m_s2)
         self._last_good: tuple[tuple[float, ...], FloatArray, FloatArray] | None = None
         self._last_gps: tuple[float, FloatArray, FloatArray] | None = None
@@ -361,12 +359,11 @@ class Eskf:
         else:
             yaw, self._yaw_aligned = 0.0, False
         self._q = _quat_from_euler_f(roll, pitch, yaw)
-        self._rot = rotmat_f(*self._q)
         self._pos = pos
         self._vel = vel
-        self._bg = np.clip(gyro, -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s)
-        self._ba = np.zeros(3)
-        self._accel_lp = accel
+        self._set_biases(np.clip(gyro, -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s),
+                         np.zeros(3))
+        self._accel_lp_f = (float(accel[0]), float(accel[1]), float(accel[2]))
         g0, g1, g2 = (float(c) for c in gyro)
         a0, a1, a2 = (float(c) for c in accel)
         self._last_imu = (g0, g1, g2, a0, a1, a2)
@@ -446,28 +443,39 @@ class Eskf:
             held = False
             self._last_imu = (g0, g1, g2, a0, a1, a2)
 
-        bg, ba = self._bg, self._ba
-        wx, wy, wz = (g0 - bg[0]) * dt, (g1 - bg[1]) * dt, (g2 - bg[2]) * dt
-        f_body = np.array((a0 - ba[0], a1 - ba[1], a2 - ba[2]))
+        # Scalar arithmetic on Python floats: at 100 Hz-1 kHz numpy's per-call overhead would
+        # cost more than the arithmetic.
+        bg0, bg1, bg2 = self._bg_f
+        ba0, ba1, ba2 = self._ba_f
+        wx, wy, wz = (g0 - bg0) * dt, (g1 - bg1) * dt, (g2 - bg2) * dt
+        fb0, fb1, fb2 = a0 - ba0, a1 - ba1, a2 - ba2
         if self._pend_dt == 0.0:
-            self._pend_rot = self._rot  # attitude at the start of the covariance period
-        # attitude: exact exponential map; velocity uses the mid-period attitude
-        q_mid = quat_multiply_f(*self._q, *quat_from_rotvec_f(0.5 * wx, 0.5 * wy, 0.5 * wz))
-        q_new = quat_multiply_f(*self._q, *quat_from_rotvec_f(wx, wy, wz))
-        f_nav = rotmat_f(*q_mid) @ f_body
-        acc = f_nav.copy()
-        acc[2] += self.gravity_m_s2
-        self._pos += self._vel * dt + 0.5 * dt * dt * acc
+            self._pend_q = self._q  # attitude at the start of the covariance period
+        # attitude: exact exponential map; velocity uses the mid-sample attitude
+        q = self._q
+        w, x, y, z = quat_multiply_f(*q, *quat_from_rotvec_f(0.5 * wx, 0.5 * wy, 0.5 * wz))
+        # f_nav = R(q_mid) f_body
+        fx = ((1 - 2 * (y * y + z * z)) * fb0 + 2 * (x * y - w * z) * fb1
+              + 2 * (x * z + w * y) * fb2)
+        fy = (2 * (x * y + w * z) * fb0 + (1 - 2 * (x * x + z * z)) * fb1
+              + 2 * (y * z - w * x) * fb2)
+        fz = (2 * (x * z - w * y) * fb0 + 2 * (y * z + w * x) * fb1
+              + (1 - 2 * (x * x + y * y)) * fb2)
+        w, x, y, z = quat_multiply_f(*q, *quat_from_rotvec_f(wx, wy, wz))
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        self._q = (w / n, x / n, y / n, z / n)
+        acc = np.array((fx, fy, fz + self.gravity_m_s2))
+        self._pos += self._vel * dt + (0.5 * dt * dt) * acc
         self._vel += acc * dt
-        n = math.sqrt(sum(c * c for c in q_new))
-        self._q = (q_new[0] / n, q_new[1] / n, q_new[2] / n, q_new[3] / n)
-        self._rot = rotmat_f(*self._q)
-        self._f_nav = f_nav
+        self._f_nav_f = (fx, fy, fz)
         self._t += dt
-        self._accel_lp += 0.02 * (np.array((a0, a1, a2)) - self._accel_lp)
+        lp = self._accel_lp_f
+        self._accel_lp_f = (lp[0] + 0.02 * (a0 - lp[0]), lp[1] + 0.02 * (a1 - lp[1]),
+                            lp[2] + 0.02 * (a2 - lp[2]))
         self._pend_dt += dt
-        self._pend_dv += f_nav * dt
-        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q, acc))
+        pd = self._pend_dv_f
+        self._pend_dv_f = (pd[0] + fx * dt, pd[1] + fy * dt, pd[2] + fz * dt)
+        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q))
         self._predicts += 1
         if self._pend_dt >= self.cov_period_s - 1e-9:
             self._propagate_covariance()
@@ -488,23 +496,22 @@ class Eskf:
             return
         f = self._f
         f[0, 3] = f[1, 4] = f[2, 5] = dt
-        fx, fy, fz = (float(c) for c in self._pend_dv)
+        fx, fy, fz = self._pend_dv_f
         # d(dv)/d(dtheta) = -[dv_nav]x
         f[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
-        rot0 = self._pend_rot
+        rot0 = rotmat_f(*self._pend_q)
         f[3:6, 12:15] = rot0 * -dt
         f[6:9, 9:12] = rot0 * -dt
         p = f @ self._p @ f.T
         p += self._process_noise(dt)
         self._p = p
         self._pend_dt = 0.0
-        self._pend_dv[:] = 0.0
+        self._pend_dv_f = (0.0, 0.0, 0.0)
 
     def _state_finite(self) -> bool:
         """The cheap part of the health check, for samples that did not move the covariance."""
-        if all(math.isfinite(c) for c in self._q) and math.isfinite(
-            float(self._pos.sum() + self._vel.sum())
-        ):
+        # finite attitude and acceleration keep position and velocity finite
+        if math.isfinite(sum(self._q) + sum(self._f_nav_f)):
             return True
         self._fault("non-finite state")
         return False
@@ -570,7 +577,7 @@ class Eskf:
         past = self._state_at(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
-        pos_then, vel_then, _, _ = past
+        pos_then, vel_then, _ = past
         acc_then = self._mean_accel_at(self._t - latency) if self._lag_on else None
         self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
 
@@ -585,9 +592,9 @@ class Eskf:
         h[0:3, 3:6] = np.eye(3) * -latency
         h[3:6, 3:6] = np.eye(3)
         if latency > 0.0:
-            fx, fy, fz = (float(c) * latency for c in self._f_nav)
+            fx, fy, fz = (c * latency for c in self._f_nav_f)
             h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
-            h[3:6, 12:15] = self._rot * latency
+            h[3:6, 12:15] = rotmat_f(*self._q) * latency
         if acc_then is not None:
             # z = x(t - lag): a longer delay reads an older position and velocity
             h[0:3, IDX_GPS_LAG] = -vel_then
@@ -652,7 +659,7 @@ class Eskf:
         h[1, 6:9] = (-sy, cy, 0.0)
         if latency > 0.0:
             # the attitude error then differs from now's by the gyro-bias drift in between
-            h[:, 9:12] = h[:, 6:9] @ self._rot * latency
+            h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency
         var = (self.horizon_std_rad / qual) ** 2
         result = self._kalman_update(y, h, np.eye(2) * var, self.attitude_gate)
         self._last_att_innovation = y
@@ -714,9 +721,10 @@ class Eskf:
         w, x, y, z = quat_multiply_f(*quat_from_rotvec_f(tx, ty, tz), *self._q)
         n = math.sqrt(w * w + x * x + y * y + z * z)
         self._q = (w / n, x / n, y / n, z / n)
-        self._rot = rotmat_f(*self._q)
-        self._bg = np.clip(self._bg + dx[IDX_GYRO_BIAS], -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s)
-        self._ba = np.clip(self._ba + dx[IDX_ACCEL_BIAS], -self.max_accel_bias_m_s2, self.max_accel_bias_m_s2)
+        self._set_biases(
+            np.clip(self._bg + dx[IDX_GYRO_BIAS], -self.max_gyro_bias_rad_s, self.max_gyro_bias_rad_s),
+            np.clip(self._ba + dx[IDX_ACCEL_BIAS], -self.max_accel_bias_m_s2, self.max_accel_bias_m_s2),
+        )
         if self._lag_on:
             self._lag = min(max(self._lag + float(dx[IDX_GPS_LAG]), 0.0), self.max_gps_lag_s)
         # error-reset Jacobian for a NED-frame attitude error: G = I + [dtheta/2]x
@@ -743,7 +751,6 @@ class Eskf:
         delta = float(wrap_pi(course_rad - yaw))
         dq = quat_from_rotvec_f(0.0, 0.0, delta)
         self._q = quat_multiply_f(*dq, *self._q)
-        self._rot = rotmat_f(*self._q)
         # velocity and position integrated with the wrong heading are worthless: restart them
         self._vel = z_vel.copy()
         self._pos = z_pos + z_vel * latency_s
@@ -824,9 +831,9 @@ class Eskf:
             else:
                 # nothing believable left: level on the low-passed accelerometer (wrong in a
                 # sustained turn, which is why a finite attitude is always preferred)
-                if not np.isfinite(self._accel_lp).all():
-                    self._accel_lp = np.array((0.0, 0.0, -self.gravity_m_s2))
-                roll, pitch = roll_pitch_from_accel(self._accel_lp)
+                if not all(math.isfinite(c) for c in self._accel_lp_f):
+                    self._accel_lp_f = (0.0, 0.0, -self.gravity_m_s2)
+                roll, pitch = roll_pitch_from_accel(np.array(self._accel_lp_f))
                 q = _quat_from_euler_f(roll, pitch, 0.0)
         pos, vel = self._pos, self._vel
         if gps is None and self._last_gps is not None:
@@ -839,16 +846,13 @@ class Eskf:
             pos, vel = gps[0].copy(), gps[1].copy()
         if not (np.isfinite(pos).all() and np.isfinite(vel).all()):
             pos, vel = (good[1].copy(), good[2].copy()) if good is not None else (np.zeros(3), np.zeros(3))
-        if not np.isfinite(self._bg).all():
-            self._bg = np.zeros(3)
-        if not np.isfinite(self._ba).all():
-            self._ba = np.zeros(3)
+        self._set_biases(self._bg if np.isfinite(self._bg).all() else np.zeros(3),
+                         self._ba if np.isfinite(self._ba).all() else np.zeros(3))
         self._q = (q[0], q[1], q[2], q[3])
-        self._rot = rotmat_f(*self._q)
         self._pos, self._vel = pos, vel
         self._p = self._initial_covariance()
         self._pend_dt = 0.0
-        self._pend_dv[:] = 0.0
+        self._pend_dv_f = (0.0, 0.0, 0.0)
         self._history.clear()
         self._gps_rejections = 0
         self._att_rejections = 0
@@ -861,29 +865,29 @@ class Eskf:
             if i != IDX_YAW or self._yaw_aligned:
                 p[i, i] = var
 
+    def _set_biases(self, bg: FloatArray, ba: FloatArray) -> None:
+        """Biases as arrays (updates, outputs) and as floats (the per-sample path)."""
+        self._bg, self._ba = bg, ba
+        self._bg_f = (float(bg[0]), float(bg[1]), float(bg[2]))
+        self._ba_f = (float(ba[0]), float(ba[1]), float(ba[2]))
+
     def _remember_good(self) -> None:
         self._last_good = (self._q, self._pos.copy(), self._vel.copy())
 
-    def _state_at(
-        self, t_s: float
-    ) -> tuple[FloatArray, FloatArray, tuple[float, ...], FloatArray] | None:
-        """Nominal position, velocity, attitude and acceleration (NED) at ``t_s`` from the
-        history (interpolated)."""
+    def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
+        """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
         if t_s >= self._t - 1e-9 or not self._history:
-            acc = self._f_nav.copy()
-            acc[2] += self.gravity_m_s2
-            return self._pos.copy(), self._vel.copy(), self._q, acc
+            return self._pos.copy(), self._vel.copy(), self._q
         newer = None
         for entry in reversed(self._history):
             if entry[0] <= t_s:
                 if newer is None:
-                    return entry[1].copy(), entry[2].copy(), entry[3], entry[4]
+                    return entry[1].copy(), entry[2].copy(), entry[3]
                 t0, t1 = entry[0], newer[0]
                 a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
                 pos = entry[1] + a * (newer[1] - entry[1])
                 vel = entry[2] + a * (newer[2] - entry[2])
-                near = newer if a >= 0.5 else entry
-                return pos, vel, near[3], near[4]
+                return pos, vel, (newer[3] if a >= 0.5 else entry[3])
             newer = entry
         return None
 
