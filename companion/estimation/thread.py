@@ -40,7 +40,9 @@ STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_
                  "std_vn_m_s", "std_ve_m_s", "std_vd_m_s", "std_roll_rad", "std_pitch_rad",
                  "std_yaw_rad", "faults", "aligned"]
 GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_s", "nis",
-               "accepted", "latency_s"]
+               "accepted", "latency_s", "gps_lag_s", "gps_lag_std_s"]
+"""Per fused fix: innovations, NIS, verdict, the whole latency applied, and the receiver delay
+the filter estimates within it (with its 1-sigma)."""
 
 
 class EstimatorThread(ManagedThread):
@@ -85,7 +87,8 @@ class EstimatorThread(ManagedThread):
     def define_logs(self, tlog: Any) -> None:
         tlog.define(FMT_STATE, ",".join(["%.6f"] * 3 + ["%.3f"] * 6 + ["%.6f"] * 6
                                         + ["%.4f"] * 9) + ",%u,%hhu", STATE_COLUMNS)
-        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f", GPS_COLUMNS)
+        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f",
+                    GPS_COLUMNS)
 
     def _params(self) -> dict[str, float]:
         prefix = self.param_prefix + "_"
@@ -141,10 +144,11 @@ class EstimatorThread(ManagedThread):
             fused = core.fuse_gps(fix)
             if fused is not None and self.tlog is not None:
                 res, latency = fused
-                if res.innovation.size == 6:
+                if res.innovation.size == 6 and core.filter is not None:
+                    st = core.filter.state()
                     self.tlog.log(FMT_GPS, *res.innovation,
                                   res.nis if math.isfinite(res.nis) else -1.0,
-                                  int(res.accepted), latency)
+                                  int(res.accepted), latency, st.gps_lag_s, st.gps_lag_std_s)
         h, h_version, _ = self.ctx.state.horizon.read_versioned()
         if h is not None and h_version != self._hzn_seen:
             self._hzn_seen = h_version

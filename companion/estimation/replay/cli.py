@@ -27,8 +27,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="output directory (default: <log stem>-replay/ next to the log)")
     p.add_argument("--estimator", choices=["auto", "eskf", "attitude"], default="auto",
                    help="auto: the ESKF when the log has GPS fixes, else IMU-only")
-    p.add_argument("--skip-s", type=float, default=5.0, metavar="S",
-                   help="seconds after our estimator starts that are not scored (default 5)")
+    p.add_argument("--skip-s", type=float, default=2.0, metavar="S",
+                   help="seconds after our estimator starts that are not scored (default 2)")
     p.add_argument("--imu-instance", type=int, metavar="N",
                    help="ArduPilot IMU instance to use (default: the first logged)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
@@ -117,12 +117,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if result.comparisons:
         print(f"difference from the flight controller, from {options.skip_s:g} s after our "
               "start (deg, RMSE/p95/max):")
-        print(f"  {'reference':<30}{'samples':>8}  {'roll':>17}{'pitch':>17}{'yaw':>17}"
-              f"{'inclination':>17}")
+        print(f"  {'reference':<24}{'samples':>8} {'roll':>19}{'pitch':>19}{'yaw':>19}"
+              f"{'inclination':>19}")
         for c in result.comparisons:
             m = c.metrics
-            print(f"  {c.name:<30}{m.get('samples_compared', 0):>8}  "
-                  f"{_fmt(m.get('roll_deg')):>17}{_fmt(m.get('pitch_deg')):>17}"
-                  f"{_fmt(m.get('yaw_deg')):>17}{_fmt(m.get('inclination_deg')):>17}")
+            print(f"  {c.name:<24}{m.get('samples_compared', 0):>8} "
+                  f"{_fmt(m.get('roll_deg')):>19}{_fmt(m.get('pitch_deg')):>19}"
+                  f"{_fmt(m.get('yaw_deg')):>19}{_fmt(m.get('inclination_deg')):>19}")
     print(f"wrote {', '.join(files.values())} (replay {result.run_time_s:.1f} s)")
     return 0

@@ -120,6 +120,18 @@ def write_figure(result: ReplayResult, path: Path) -> Path:
 
     est = result.estimate
     t_s = (est.t_us - result.t0_us) / 1e6
+
+    def wrapped_deg(a_deg: np.ndarray) -> np.ndarray:
+        """Into [-180, 180), with a break (NaN) where a line would cross the whole plot."""
+        w = (a_deg + 180.0) % 360.0 - 180.0
+        jumps = np.flatnonzero(np.abs(np.diff(w)) > 180.0)
+        return np.insert(w, jumps + 1, np.nan)
+
+    def broken_t(a_deg: np.ndarray) -> np.ndarray:
+        w = (a_deg + 180.0) % 360.0 - 180.0
+        jumps = np.flatnonzero(np.abs(np.diff(w)) > 180.0)
+        return np.insert(t_s.astype(float), jumps + 1, np.nan)
+
     fig, axes = plt.subplots(4, 1, figsize=(11, 10), sharex=True)
     names = ("roll", "pitch", "yaw")
     for a, name in enumerate(names):
@@ -127,14 +139,19 @@ def write_figure(result: ReplayResult, path: Path) -> Path:
         ours = np.degrees(est.euler_rad[:, a])
         if a == 2 and result.estimator == "eskf":
             ours = np.where(est.aligned, ours, np.nan)
-        ax.plot(t_s, ours, lw=0.9, label=f"ours ({result.estimator})")
+        if a == 2:
+            ax.plot(broken_t(ours), wrapped_deg(ours), lw=0.9, label=f"ours ({result.estimator})")
+        else:
+            ax.plot(t_s, ours, lw=0.9, label=f"ours ({result.estimator})")
         for comp in result.comparisons:
             ref = np.degrees(comp.ref_euler_rad[:, a])
             off = comp.metrics.get("yaw_offset_removed_deg") if a == 2 else None
-            if off is not None:
-                ref = np.degrees(np.angle(np.exp(1j * np.radians(ref + off))))
-            ax.plot(t_s, ref, lw=0.9, alpha=0.8, label=comp.name
-                    + (f" (+{off:.1f}° offset)" if off is not None else ""))
+            label = comp.name + (f" (+{off:.1f}° offset)" if off is not None else "")
+            if a == 2:
+                ref = ref + (off or 0.0)
+                ax.plot(broken_t(ref), wrapped_deg(ref), lw=0.9, alpha=0.8, label=label)
+            else:
+                ax.plot(t_s, ref, lw=0.9, alpha=0.8, label=label)
         ax.set_ylabel(f"{name} (deg)")
         ax.grid(True, alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)

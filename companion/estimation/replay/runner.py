@@ -128,7 +128,7 @@ class ReplayOptions:
     converging). `params`: estimator-thread parameters by suffix (``GPS_LAG``...)."""
 
     estimator: str = "auto"
-    skip_s: float = 5.0
+    skip_s: float = 2.0
     output_period_s: float = 0.01
     params: dict[str, float] = field(default_factory=dict)
 
@@ -354,6 +354,7 @@ def compare(est: Estimate, ref: AttitudeSeries, ref_t_us: IntArray, keep: IntArr
                           j1, j0)
         ok = np.abs(ref_t_us[nearer] - est.t_us) <= tol
         ref_at[ok] = ref_e[nearer[ok]]
+        ref_at[:, 2] = wrap_pi(ref_at[:, 2])  # ArduPilot logs yaw in 0..360 deg
         scored = ok & (est.t_us >= start_us)
         q_ref = quat_from_euler(ref_at[:, 0], ref_at[:, 1], ref_at[:, 2])
         diff = wrap_pi(est.euler_rad - ref_at)
@@ -418,8 +419,7 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
     choice = opts.estimator
     if choice == "auto":
         choice = "eskf" if fixes else "attitude"
-        reason = (f"{len(fixes)} GPS fixes" if fixes
-                  else "no GPS fix in the log: IMU-only attitude (heading arbitrary)")
+        reason = f"{len(fixes)} GPS fixes" if fixes else "no GPS fix in the log"
     else:
         reason = "asked for"
     if choice == "eskf" and not fixes:

@@ -317,7 +317,8 @@ def close_dfreader(reader: Any) -> None:
 def read_dataflash(path: Path, *, salvage: bool = False,
                    imu_instance: int | None = None) -> FlightLog:
     """ArduPilot: `IMU` (first instance unless told), `GPS` (first instance), and the
-    references `ATT`, `AHR2` and `XKF1` (EKF3 core 0) when logged."""
+    references `ATT`, `AHR2`, `XKF1` (EKF3) and `NKF1` (EKF2, older logs), core 0, when
+    logged."""
     from pymavlink import DFReader
 
     data = path.read_bytes()
@@ -328,7 +329,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
             raise LogReadError(path, f"ArduPilot DataFlash: {what}", bad_at)
         damage = f"{what} at byte offset {bad_at} (pymavlink resynchronised)"
     del data
-    types = ["IMU", "IMU2", "IMU3", "GPS", "ATT", "AHR2", "XKF1"]
+    types = ["IMU", "IMU2", "IMU3", "GPS", "ATT", "AHR2", "XKF1", "NKF1"]
     rows: dict[str, list[tuple[Any, ...]]] = {t: [] for t in types}
     quiet = io.StringIO()
     reader: Any = None
@@ -352,7 +353,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
                                        *(getattr(m, f, math.nan) for f in
                                          ("Status", "NSats", "HDop", "Lat", "Lng", "Alt", "Spd",
                                           "GCrs", "VZ"))))
-                elif name == "XKF1":
+                elif name in ("XKF1", "NKF1"):
                     rows[name].append((int(getattr(m, "C", 0) or 0), t, m.Roll, m.Pitch, m.Yaw))
                 else:
                     rows[name].append((0, t, m.Roll, m.Pitch, m.Yaw))
@@ -388,7 +389,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
             h_std_m=_nan(n), v_std_m=_nan(n), vn_m_s=_nan(n), ve_m_s=_nan(n),
             vd_m_s=g[:, 9], speed_m_s=g[:, 7], course_deg=g[:, 8], source=f"GPS[{g_inst[0]}]")
     refs = []
-    for name in ("ATT", "AHR2", "XKF1"):
+    for name in ("ATT", "AHR2", "XKF1", "NKF1"):
         r = rows[name]
         if not r:
             continue
