@@ -55,6 +55,8 @@ class EstimatorCore:
             raise ValueError(f"EstimatorCore: dt_source must be 'counter' or 'time', got {dt_source!r}")
         self.dt_source = dt_source
         self.p: dict[str, float] = {k: float(v) for k, v in params.items()}
+        self._board_to_body: tuple[tuple[float, ...], ...] | None = None
+        self._set_trim()
         self.eskf_kwargs = dict(eskf_kwargs or {})
         self.frame = NedFrame(*home_lla) if home_lla is not None else None
         self.filter: Eskf | None = None
@@ -72,6 +74,43 @@ class EstimatorCore:
         self._fix: GpsFix | None = None
 
     # ------------------------------------------------------------------ set-up
+    def _set_trim(self) -> None:
+        """The IMU board's rotation against the airframe (`TRIM_ROLL/PITCH/YAW`, from a level
+        calibration): samples are turned into airframe axes before the filter sees them, so
+        the attitude it reports is the aircraft's, not the board's."""
+        roll, pitch, yaw = (self.p.get(k, 0.0) for k in ("TRIM_ROLL", "TRIM_PITCH", "TRIM_YAW"))
+        if roll == pitch == yaw == 0.0:
+            self._board_to_body = None
+            return
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        # board axes -> airframe axes: the board is the airframe turned by yaw, pitch, roll
+        self._board_to_body = (
+            (cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy),
+            (cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy),
+            (-sp, sr * cp, cr * cp),
+        )
+
+    def _to_body(self, samples: Sequence[ImuSample]) -> Sequence[ImuSample]:
+        m = self._board_to_body
+        if m is None:
+            return samples
+        out = []
+        for s in samples:
+            g0, g1, g2 = s.rates_rad_s
+            a0, a1, a2 = s.accel_m_s2
+            out.append(ImuSample(
+                s.t_ns, s.counter,
+                (m[0][0] * g0 + m[0][1] * g1 + m[0][2] * g2,
+                 m[1][0] * g0 + m[1][1] * g1 + m[1][2] * g2,
+                 m[2][0] * g0 + m[2][1] * g1 + m[2][2] * g2),
+                (m[0][0] * a0 + m[0][1] * a1 + m[0][2] * a2,
+                 m[1][0] * a0 + m[1][1] * a1 + m[1][2] * a2,
+                 m[2][0] * a0 + m[2][1] * a1 + m[2][2] * a2),
+                s.gyro_ok, s.accel_ok))
+        return out
+
     def new_filter(self, moving: bool) -> Eskf:
         p = self.p
         kwargs: dict[str, Any] = {
@@ -90,6 +129,7 @@ class EstimatorCore:
         delay or delay uncertainty restarts the delay estimate from it."""
         lag_before = (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD"))
         self.p.update({k: float(v) for k, v in params.items()})
+        self._set_trim()
         f = self.filter
         if f is not None and lag_before != (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD")):
             f.set_gps_lag(self.p["GPS_LAG"], self.p.get("GPS_LAGSD", 0.0))
@@ -114,7 +154,7 @@ class EstimatorCore:
         if self.init_failed:
             return False
         need = max(1, int(self.p["INIT_S"] / IMU_PERIOD_S))
-        for s in samples:
+        for s in self._to_body(samples):
             if not self._enough_init(need):
                 if self._first_t_ns is None:
                     self._first_t_ns = s.t_ns
@@ -162,7 +202,7 @@ class EstimatorCore:
             return 0
         used = 0
         by_time = self.dt_source == "time"
-        for s in samples:
+        for s in self._to_body(samples):
             if by_time:
                 dt = IMU_PERIOD_S if self._last_t_ns is None else (s.t_ns - self._last_t_ns) / 1e9
                 self._last_t_ns = s.t_ns

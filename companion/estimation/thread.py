@@ -71,6 +71,14 @@ class EstimatorThread(ManagedThread):
                         "GPS horizontal position 1-sigma per unit HDOP."),
             float_param(f"{p}_GPS_VSTD", 2.0, 0.05, 100.0, "m",
                         "GPS vertical position 1-sigma (GST altitude std used when larger)."),
+            float_param(f"{p}_TRIM_ROLL", 0.0, -0.5, 0.5, "rad",
+                        "IMU board roll against the airframe (level calibration): samples are "
+                        "turned into airframe axes before the filter."),
+            float_param(f"{p}_TRIM_PITCH", 0.0, -0.5, 0.5, "rad",
+                        "IMU board pitch against the airframe (level calibration)."),
+            float_param(f"{p}_TRIM_YAW", 0.0, -0.5, 0.5, "rad",
+                        "IMU board yaw against the airframe (a level calibration cannot see it; "
+                        "measure it on the ground)."),
             float_param(f"{p}_GPS_VEL", 0.15, 0.01, 10.0, "m/s", "GPS velocity 1-sigma."),
             float_param(f"{p}_GPS_LAG", 0.05, 0.0, 0.5, "s",
                         "Receiver output delay beyond the latency the driver measures: the "
