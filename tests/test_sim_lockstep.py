@@ -121,6 +121,9 @@ def fly(tmp: Path, duration_s: float = 30.0, **sim: Any) -> tuple[dict[str, Any]
     cfg = Config()
     cfg.logs.dir = str(tmp / "flights")
     cfg.params.file = str(tmp / "params.parm")
+    # rates and determinism, not sensor realism: the original sensors (fixed GPS latency, so
+    # every rate is exact) and calm air unless a test asks otherwise
+    sim = {"imu_profile": "simple", "gps_profile": "simple", "turbulence": "none", **sim}
     summary = run_lockstep(cfg, SimOptions(**sim), duration_s, handle_signals=False)
     return summary, Path(summary["flight_dir"])
 

@@ -24,7 +24,12 @@ def sim_cmd(tmp: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "companion", "sim", "--log-dir", str(tmp / "flights"),
             "--params-file", str(tmp / "params.parm"), "--mavlink", "none",
             "--legacy-listen", str(free_udp_port()),
-            "--legacy-dest", f"127.0.0.1:{free_udp_port()}", *extra]
+            "--legacy-dest", f"127.0.0.1:{free_udp_port()}", *SIMPLE_SENSORS, *extra]
+
+
+# estimator accuracy under the realistic profile: see issue #15 bench (these flights also check
+# exact rates, which the realistic receiver's latency jitter and outages would blur)
+SIMPLE_SENSORS = ("--imu-profile", "simple", "--gps-profile", "simple", "--turbulence", "none")
 
 
 def fly_json(tmp: Path, *args: str) -> dict[str, Any]:

@@ -64,7 +64,9 @@ class EstimatorThread(ManagedThread):
                         "Gyro white-noise density (angle random walk)."),
             float_param(f"{p}_ACC_NSD", 0.05, 1e-4, 5.0, "m/s^2/rtHz",
                         "Accelerometer white-noise density."),
-            float_param(f"{p}_GB_RW", 5e-5, 1e-8, 0.01, "rad/s/rts", "Gyro bias random walk."),
+            float_param(f"{p}_GB_RW", 2e-4, 1e-8, 0.01, "rad/s/rts",
+                        "Gyro bias random walk (wide enough to follow a consumer part warming "
+                        "up: about 1 deg/s over its first minutes)."),
             float_param(f"{p}_AB_RW", 1e-3, 1e-7, 0.1, "m/s^2/rts",
                         "Accelerometer bias random walk."),
             float_param(f"{p}_GPS_HSTD", 1.0, 0.05, 100.0, "m",

@@ -33,11 +33,13 @@ one pipeline; its stages are separate functions.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,6 +64,13 @@ from companion.estimation.quat import (
 from companion.estimation.thread import EstimatorThread
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
+from companion.sim.profiles import (
+    DEFAULT_GPS_PROFILE,
+    DEFAULT_IMU_PROFILE,
+    DEFAULT_TURBULENCE,
+    SensorSetup,
+    resolve_sensors,
+)
 from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
 from companion.tasks import VEHICLE_TASKS
 
@@ -97,6 +106,9 @@ GPS_EVERY = 10
 """IMU ticks per GPS epoch (10 Hz), as in the SITL world."""
 PILOT_EVERY = 2
 """IMU ticks per servo-board frame (50 Hz): how often the pilot moves the sticks."""
+CAMERA_LATENCY_S = 0.1
+"""Frame time to a horizon fix reaching the estimator: detection on the ground and both links
+(assumed; see docs/horizon.md)."""
 GPS_IDLE_MS = 20
 """The GPS driver's default hand-off-on-silence time (GPS_IDLE_MS)."""
 START_UTC_S = 12 * 3600.0
@@ -133,15 +145,28 @@ class FlightSpec:
     duration_s: float = 120.0
     settle_s: float = 3.0
     """Centred sticks on the trimmed aircraft before the pilot starts (the world's settle)."""
-    gps_latency_s: float = 0.05
-    """Age of a GPS epoch when its bytes reach the decoder (the world's ``--gps-latency``)."""
-    imu: ImuSimConfig = field(default_factory=ImuSimConfig)
-    gps: GpsSimConfig = field(default_factory=GpsSimConfig)
+    gps_latency_s: float | None = None
+    """Mean age of a GPS epoch when its bytes reach the decoder (the world's
+    ``--gps-latency``); None: the GPS profile's. The profile's jitter still applies."""
+    imu_profile: str = DEFAULT_IMU_PROFILE
+    """Sensor and air profiles (`companion.sim.profiles`, docs/sitl.md)."""
+    gps_profile: str = DEFAULT_GPS_PROFILE
+    turbulence: str = DEFAULT_TURBULENCE
+    imu: ImuSimConfig | None = None
+    """An explicit IMU error model instead of the profile's (None: from the profile)."""
+    gps: GpsSimConfig | None = None
+    """An explicit receiver instead of the profile's (None: from the profile); its own
+    ``latency_s`` applies unless ``gps_latency_s`` is given."""
     horizon_rate_hz: float = 10.0
     horizon_noise_rad: float = math.radians(1.0)
     horizon_quality: float = 0.8
     horizon_latency_s: float = 0.0
     """Age of a horizon fix when it reaches the estimator (video frame time to fusion)."""
+    horizon_camera: str = ""
+    """``""``: horizon fixes are the truth plus ``horizon_noise_rad`` of white noise. A
+    disturbance level of :class:`companion.sim.camera.SimCamera` (``none``, ``light``,
+    ``thesis``): frames rendered at the true attitude, the real detector on them, its fixes
+    (failures and gross errors included) handed off 0.1 s after each frame."""
 
     def __post_init__(self) -> None:
         if self.aircraft.lower() not in AIRCRAFT:
@@ -158,10 +183,14 @@ class FlightSpec:
             raise ValueError(
                 f"FlightSpec.wind_ned_m_s: need 3 finite values, got {self.wind_ned_m_s!r}"
             )
+        if self.horizon_camera not in ("", "none", "light", "thesis"):
+            raise ValueError(f"FlightSpec.horizon_camera: unknown {self.horizon_camera!r}, "
+                             "choose '', none, light or thesis")
         checks = (
             ("duration_s", self.duration_s, 1.0, 24 * 3600.0),
             ("settle_s", self.settle_s, 0.0, 60.0),
-            ("gps_latency_s", self.gps_latency_s, 0.0, 0.5),
+            ("gps_latency_s", 0.0 if self.gps_latency_s is None else self.gps_latency_s,
+             0.0, 0.5),
             ("horizon_rate_hz", self.horizon_rate_hz, 0.1, 100.0),
             ("horizon_noise_rad", self.horizon_noise_rad, 0.0, 1.0),
             ("horizon_quality", self.horizon_quality, 1e-3, 1.0),
@@ -170,6 +199,21 @@ class FlightSpec:
         for name, value, lo, hi in checks:
             if not (isinstance(value, int | float) and math.isfinite(value) and lo <= value <= hi):
                 raise ValueError(f"FlightSpec.{name}: must be within {lo}..{hi}, got {value!r}")
+        try:
+            self.sensors()
+        except ValueError as exc:
+            raise ValueError(f"FlightSpec: {exc}") from None
+
+    def sensors(self) -> SensorSetup:
+        """The flight's IMU, receiver and air, from the profiles and any explicit override."""
+        setup = resolve_sensors(self.imu_profile, self.gps_profile, self.turbulence,
+                                gps_latency_s=self.gps_latency_s)
+        imu = self.imu if self.imu is not None else setup.imu
+        gps = setup.gps
+        if self.gps is not None:
+            gps = self.gps if self.gps_latency_s is None else dataclasses.replace(
+                self.gps, latency_s=self.gps_latency_s)
+        return dataclasses.replace(setup, imu=imu, gps=gps)
 
 
 @dataclass
@@ -197,6 +241,26 @@ class SitlRecording:
     horizon: dict[int, HorizonMeasurement]
     gps_error_ned_m: FloatArray
     """GPS position error (fix minus truth at its validity time) of every epoch, (M, 3)."""
+    gps_epoch_t_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """Validity time of every epoch the receiver produced, outages included, (E,)."""
+    gps_latency_true_s: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """How late each of those epochs was delivered (the filter is not told), (E,)."""
+    gps_fix_ok: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    """Whether each epoch had a fix (False in an outage), (E,)."""
+    imu_gyro_scale: FloatArray = field(default_factory=lambda: np.zeros(3))
+    """True scale-factor errors (fractions, at 25 C) and mounting misalignment (rotation vector
+    from body to the part's axes, rad) of the simulated IMU."""
+    imu_accel_scale: FloatArray = field(default_factory=lambda: np.zeros(3))
+    imu_misalignment_rad: FloatArray = field(default_factory=lambda: np.zeros(3))
+    imu_temperature_c: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """The IMU's temperature per tick, (N,)."""
+    propeller_rpm: FloatArray = field(default_factory=lambda: np.zeros(0))
+    """The propeller's speed per tick (drives the IMU's vibration), (N,)."""
+    sensors: dict[str, Any] = field(default_factory=dict)
+    """Profile names and resolved numbers (`SensorSetup.metadata`)."""
+    camera: dict[str, Any] | None = None
+    """The simulated camera's counts and errors (``CameraStats.summary``) when the horizon
+    fixes came from the detector (``FlightSpec.horizon_camera``)."""
 
     @property
     def ticks(self) -> int:
@@ -226,18 +290,21 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     Raises :class:`SitlEvalError` if JSBSim cannot trim or the aircraft hits the ground.
     """
     rng = np.random.default_rng(spec.seed)
+    sensors = spec.sensors()
     try:
-        model = FlightModel(spec.aircraft, wind_ned_m_s=spec.wind_ned_m_s, seed=spec.seed)
+        model = FlightModel(spec.aircraft, wind_ned_m_s=spec.wind_ned_m_s, seed=spec.seed,
+                            turbulence_severity=sensors.turbulence_severity)
     except (FlightModelError, ValueError) as exc:
         raise SitlEvalError(f"{spec.aircraft} seed {spec.seed}: cannot start: {exc}") from exc
     throttle = float(model.trim_controls.throttle)
     pilot = Pilot(spec.scenario, spec.seed, aircraft=spec.aircraft, trim_throttle=throttle)
     settle_sticks = [1500, 1500, int(round(1000 + 1000 * throttle)), 1500, 1000, 1500, 1500, 1500]
-    imu_sim = ImuSim(np.random.default_rng(rng.integers(2**63)), spec.imu)
-    gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), spec.gps)
+    imu_sim = ImuSim(np.random.default_rng(rng.integers(2**63)), sensors.imu)
+    gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
+    gps_every = int(round(IMU_RATE_HZ / sensors.gps.rate_hz))
     hzn_rng = np.random.default_rng(rng.integers(2**63))
     imu_dec = ImuDecoder()
-    gps_dec = NmeaDecoder(expected_sentences=spec.gps.expected_sentences,
+    gps_dec = NmeaDecoder(expected_sentences=sensors.gps.expected_sentences,
                           idle_handoff_ms=GPS_IDLE_MS)
     frame = model.frame
 
@@ -250,6 +317,9 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     gps: dict[int, GpsFix] = {}
     horizon: dict[int, HorizonMeasurement] = {}
     gps_errors: list[tuple[float, ...]] = []
+    gps_epochs: list[tuple[float, float, bool]] = []  # validity time, latency, fix
+    temperature = np.empty(n)
+    rpm = np.empty(n)
     gps_queue: list[tuple[float, bytes]] = []
     hzn_queue: list[tuple[float, HorizonMeasurement]] = []
     hzn_every = max(1, int(round(IMU_RATE_HZ / spec.horizon_rate_hz)))
@@ -272,18 +342,22 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
         t_ns = int(round(t * 1e9))
         truth[k] = (state.roll_rad, state.pitch_rad, state.yaw_rad, state.north_m, state.east_m,
                     state.down_m, state.vn_m_s, state.ve_m_s, state.vd_m_s)
+        rpm[k] = model.propeller_rpm()
+        temperature[k] = imu_sim.temperature_at(t)
         data = imu_sim.frame((state.p_rad_s, state.q_rad_s, state.r_rad_s),
-                             (state.ax_m_s2, state.ay_m_s2, state.az_m_s2))
+                             (state.ax_m_s2, state.ay_m_s2, state.az_m_s2), rpm[k],
+                             temperature[k])
         gyro_bias[k] = imu_sim.gyro_bias_rad_s
         accel_bias[k] = imu_sim.accel_bias_m_s2
         for item in imu_dec.feed(data, t_ns):
             if isinstance(item, ImuFast):
                 imu[k] = ImuSample(t_ns, item.counter, item.rates_rad_s, item.accel_m_s2,
                                    item.gyro_ok, item.accel_ok)
-        if (k + 1) % GPS_EVERY == 0:
+        if (k + 1) % gps_every == 0:
             epoch = gps_sim.epoch(START_UTC_S + t, state.lat_deg, state.lon_deg, state.alt_m,
                                   state.vn_m_s, state.ve_m_s, state.vd_m_s)
-            gps_queue.append((t + spec.gps_latency_s, epoch))
+            gps_queue.append((t + gps_sim.last_latency_s, epoch))
+            gps_epochs.append((t, gps_sim.last_latency_s, not gps_sim.in_outage))
             sol = gps_sim.last_solution
             if sol is not None and sol.lat_deg is not None and sol.lon_deg is not None \
                     and sol.alt_m is not None:
@@ -307,6 +381,15 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
             horizon[k] = hzn_queue.pop(0)[1]
 
     quat = quat_from_euler(truth[:, 0], truth[:, 1], truth[:, 2])
+    camera = None
+    if spec.horizon_camera:
+        # the camera does not feed back into the flight, so it can run over the finished truth
+        from companion.sim.camera import SimCamera, horizon_measurements
+
+        cam = SimCamera(np.random.default_rng([spec.seed, 0x48_5A_4E]), rate_hz=spec.horizon_rate_hz,
+                        latency_s=CAMERA_LATENCY_S, disturbance=spec.horizon_camera)
+        horizon = horizon_measurements(cam, t_s, truth[:, 0:3])
+        camera = cam.stats.summary()
     return SitlRecording(
         spec=spec,
         home_lla=(frame.lat0_deg, frame.lon0_deg, frame.alt0_m),
@@ -322,6 +405,16 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
         gps=gps,
         horizon=horizon,
         gps_error_ned_m=np.array(gps_errors).reshape(-1, 3),
+        gps_epoch_t_s=np.array([e[0] for e in gps_epochs]),
+        gps_latency_true_s=np.array([e[1] for e in gps_epochs]),
+        gps_fix_ok=np.array([e[2] for e in gps_epochs], dtype=bool),
+        imu_gyro_scale=np.array(imu_sim.errors.gyro_scale),
+        imu_accel_scale=np.array(imu_sim.errors.accel_scale),
+        imu_misalignment_rad=np.array(imu_sim.errors.misalignment_rad),
+        imu_temperature_c=temperature,
+        propeller_rpm=rpm,
+        sensors=sensors.metadata(),
+        camera=camera,
     )
 
 
@@ -716,6 +809,8 @@ class RunResult:
     eskf: dict[str, EskfRun]
     outage: dict[str, OutageGrowth]
     elapsed_s: float
+    camera: dict[str, Any] | None = None
+    """The camera's figures when the horizon fixes came from the detector."""
 
 
 def _compact(run: EskfRun) -> EskfRun:
@@ -791,4 +886,5 @@ def evaluate(
         eskf=runs,
         outage=outage,
         elapsed_s=time.perf_counter() - t0,
+        camera=rec.camera,
     )

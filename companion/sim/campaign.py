@@ -55,6 +55,7 @@ KEYS: dict[str, Any] = {
     "scenario": str, "seed": int, "aircraft": str, "wind": list, "gps_latency_s": (int, float),
     "duration_s": (int, float), "faults": list, "vanish": list, "thread_faults": list,
     "no_noise": bool, "params": dict, "lockstep": bool, "speed": (int, float),
+    "imu_profile": str, "gps_profile": str, "turbulence": str,
 }
 """What a flight may set, with its type (`wind` is [N, E, D] in m/s)."""
 DEFAULTS: dict[str, Any] = {"scenario": "mixed", "seed": 0, "aircraft": "c172p",
@@ -147,6 +148,15 @@ def _checked(table: dict[str, Any], where: str) -> dict[str, Any]:
         if key in ("faults", "vanish", "thread_faults") and not all(
                 isinstance(v, str) for v in value):
             raise CampaignError(f"{where}: {key}: expected a list of strings")
+        if key in ("imu_profile", "gps_profile", "turbulence"):
+            from companion.sim.profiles import gps_profile, imu_profile, turbulence_severity
+
+            check = {"imu_profile": imu_profile, "gps_profile": gps_profile,
+                     "turbulence": turbulence_severity}[key]
+            try:
+                check(value)
+            except ValueError as exc:
+                raise CampaignError(f"{where}: {key}: {exc}") from None
     return dict(table)
 
 
@@ -185,6 +195,10 @@ def flight_command(spec: FlightSpec, campaign_dir: Path) -> list[str]:
         cmd += ["--gps-latency", repr(float(s["gps_latency_s"]))]
     if s.get("no_noise"):
         cmd.append("--no-noise")
+    for key, option in (("imu_profile", "--imu-profile"), ("gps_profile", "--gps-profile"),
+                        ("turbulence", "--turbulence")):
+        if key in s:
+            cmd += [option, str(s[key])]
     for key, option in (("faults", "--fault"), ("vanish", "--vanish"),
                         ("thread_faults", "--thread-fault")):
         for value in s.get(key) or ():

@@ -28,6 +28,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"companion sim: unknown scenario {args.scenario!r} ({', '.join(SCENARIOS)})",
               file=sys.stderr)
         return 2
+    from companion.sim.profiles import resolve_sensors
+
+    try:
+        resolve_sensors(args.imu_profile, args.gps_profile, args.turbulence,
+                        no_noise=args.no_noise, gps_latency_s=args.gps_latency)
+    except ValueError as exc:
+        print(f"companion sim: {exc}", file=sys.stderr)
+        return 2
     from companion.sim.clock_faults import parse_clock_step
     from companion.sim.thread_faults import parse_thread_fault
     from companion.sim.world import parse_fault, parse_vanish
@@ -61,7 +69,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
                      faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
                      auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
-                     no_noise=args.no_noise)
+                     no_noise=args.no_noise, imu_profile=args.imu_profile,
+                     gps_profile=args.gps_profile, turbulence=args.turbulence)
 
     def live(rt: object) -> None:
         if sys.stderr.isatty() and args.verbose == 0:
@@ -195,7 +204,19 @@ def add_commands(sub: argparse._SubParsersAction,
                             "the arithmetic; deterministic (no ground links: docs/sitl.md)")
     p.add_argument("--wind", type=float, nargs=3, metavar=("N", "E", "D"),
                    help="steady wind, m/s (NED: the direction it blows towards)")
-    p.add_argument("--gps-latency", type=float, default=0.05, metavar="S")
+    p.add_argument("--gps-latency", type=float, metavar="S",
+                   help="mean age of a GPS epoch when it arrives (default: the GPS profile's; "
+                   "the profile's jitter still applies)")
+    p.add_argument("--imu-profile", metavar="NAME",
+                   help="simulated IMU: consumer (default, MPU-6000 class), tactical "
+                   "(ADIS16488A class), isis (the thesis's unit), simple (the original model), "
+                   "ideal (docs/sitl.md)")
+    p.add_argument("--gps-profile", metavar="NAME",
+                   help="simulated receiver: ublox-m8 (default), dg16 (the thesis's Ashtech), "
+                   "simple (the original model), ideal")
+    p.add_argument("--turbulence", metavar="LEVEL",
+                   help="JSBSim MIL-F-8785C turbulence: none, light, moderate (default; none "
+                   "under --no-noise), severe")
     p.add_argument("--gps-ashtech", action="store_true", help="add $PASHR,POS sentences")
     p.add_argument("--fault", action="append", default=[], metavar="DEV:SPEC",
                    help="inject device faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,"
@@ -212,5 +233,8 @@ def add_commands(sub: argparse._SubParsersAction,
                    "(as NTP or GPS time does in flight), e.g. 20:3600")
     p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
                    help="auto scenario: when the pilot engages automatic mode")
-    p.add_argument("--no-noise", action="store_true", help="perfect IMU (no noise or bias)")
+    p.add_argument("--no-noise", action="store_true",
+                   help="perfect sensors: IMU and GPS without noise, bias, scale or mounting "
+                   "error, vibration, latency jitter, multipath or outage; calm air unless "
+                   "--turbulence is given")
     p.set_defaults(func=cmd_sim, fast_exit=True)

@@ -41,6 +41,7 @@ from companion.drivers.servo_protocol import (
     encode_pilot,
     pilot_switch_auto,
 )
+from companion.sim.imu_model import ImuErrorModel, independent_stream
 
 __all__ = [
     "FaultCounts",
@@ -84,9 +85,15 @@ def _vector3(values: Sequence[float], what: str) -> np.ndarray:
 
 @dataclass(frozen=True, slots=True)
 class ImuSimConfig:
-    """Error model of the simulated IMU (1-sigma values; each frame is one 10 ms sample)."""
+    """Error model of the simulated IMU (1-sigma values; each frame is one 10 ms sample).
+
+    The defaults are the original simple model (white noise, turn-on bias, bias random walk)
+    and stay so: named, sourced profiles (`companion.sim.profiles`) fill in the other terms,
+    which `companion.sim.imu_model` applies. Every term defaults to off.
+    """
 
     gyro_noise_rad_s: float = 0.003
+    """White noise per 100 Hz sample (a noise density times sqrt(100 Hz))."""
     accel_noise_m_s2: float = 0.03
     gyro_bias_sigma_rad_s: float = 0.005
     """Spread of the turn-on gyro bias, drawn once per simulator."""
@@ -94,16 +101,64 @@ class ImuSimConfig:
     gyro_bias_walk_rad_s_sqrt_s: float = 5e-5
     accel_bias_walk_m_s2_sqrt_s: float = 5e-4
     temperature_c: float = 35.0
+    """The part's temperature once warm (constant when `temperature_start_c` is None)."""
     self_test_frames: int = 0
     """Frames at start-up flagged 'self-test running' with gyro/accel not yet ok."""
     bit_word: int = 0
+    gyro_bias_instability_rad_s: float = 0.0
+    """Sigma of the first-order Gauss-Markov bias (in-run bias instability)."""
+    accel_bias_instability_m_s2: float = 0.0
+    bias_correlation_s: float = 100.0
+    """Correlation time of the Gauss-Markov biases."""
+    gyro_scale_sigma: float = 0.0
+    """Scale-factor error per axis (fraction, drawn at turn-on)."""
+    accel_scale_sigma: float = 0.0
+    gyro_cross_axis_sigma: float = 0.0
+    """Cross-axis sensitivity, each off-diagonal element (fraction, drawn at turn-on)."""
+    accel_cross_axis_sigma: float = 0.0
+    misalignment_sigma_rad: float = 0.0
+    """Mounting misalignment per axis: a fixed small rotation of the part against the body."""
+    gyro_g_sensitivity_rad_s_per_m_s2: float = 0.0
+    """Gyro rate error per unit specific force, each element of a 3x3 matrix."""
+    temperature_start_c: float | None = None
+    """Temperature at switch-on; it warms towards `temperature_c` with `temperature_tau_s`."""
+    temperature_tau_s: float = 300.0
+    gyro_bias_temp_rad_s_per_c: float = 0.0
+    """Bias change per degree away from 25 C (sigma of the per-axis coefficient)."""
+    accel_bias_temp_m_s2_per_c: float = 0.0
+    gyro_scale_temp_per_c: float = 0.0
+    accel_scale_temp_per_c: float = 0.0
+    gyro_lsb_rad_s: float = 0.0
+    """The part's own quantisation (0: none beyond the wire format's)."""
+    accel_lsb_m_s2: float = 0.0
+    gyro_range_rad_s: float = math.inf
+    """The part's configured full scale: outputs clip there."""
+    accel_range_m_s2: float = math.inf
+    dlpf_hz: float = 0.0
+    """The part's digital low-pass filter (-3 dB), applied to the vibration (0: none)."""
+    vib_accel_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Engine vibration amplitude per body axis at `vib_ref_rpm`, first harmonic."""
+    vib_gyro_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    vib_ref_rpm: float = 2400.0
+    vib_harmonics: tuple[tuple[float, float], ...] = ((1.0, 1.0), (2.0, 0.6))
+    """(multiple of the shaft rate, relative amplitude): shaft imbalance, blade pass ..."""
+
+    def temperature_at(self, t_s: float) -> float:
+        """The part's temperature ``t_s`` after switch-on (warming exponentially)."""
+        start = self.temperature_start_c
+        if start is None or self.temperature_tau_s <= 0:
+            return self.temperature_c
+        return self.temperature_c + (start - self.temperature_c) * math.exp(
+            -t_s / self.temperature_tau_s)
 
 
 class ImuSim:
-    """100 Hz fast frames from true body rates and specific force, with noise, bias, quantisation.
+    """100 Hz fast frames from true body rates and specific force, with the part's errors
+    (`companion.sim.imu_model`) and the wire format's quantisation.
 
-    Each counter cycle's slow block carries the mean of the previous cycle's (unquantised)
-    measurements: the block must be complete before its first word goes out.
+    Each counter cycle's slow block carries the mean of the previous cycle's measurements (the
+    part's output before the wire format's quantisation): the block must be complete before its
+    first word goes out.
     """
 
     RATE_HZ = 100
@@ -111,55 +166,81 @@ class ImuSim:
     def __init__(self, rng: np.random.Generator, config: ImuSimConfig | None = None) -> None:
         self.rng = rng
         self.config = cfg = config or ImuSimConfig()
-        self.gyro_bias_rad_s = rng.normal(0.0, cfg.gyro_bias_sigma_rad_s, 3)
-        self.accel_bias_m_s2 = rng.normal(0.0, cfg.accel_bias_sigma_m_s2, 3)
+        self.errors = ImuErrorModel(cfg, rng, self.RATE_HZ)
         self.frames = 0
         self.last_rates_rad_s = np.zeros(3)
-        """Measured (biased, noisy, not yet quantised) rates of the last frame."""
+        """Measured (biased, noisy, not yet wire-quantised) rates of the last frame."""
         self.last_accel_m_s2 = np.zeros(3)
-        self._sum = np.zeros(6)
+        self._sum = [0.0] * 6
         self._count = 0
         self._words: tuple[int, ...] = ()
+        self._temperature_c = cfg.temperature_at(0.0)
 
-    def frame(self, rates_rad_s: Sequence[float], accel_m_s2: Sequence[float]) -> bytes:
-        """Advance 10 ms and return the next 20-byte fast frame."""
+    @property
+    def gyro_bias_rad_s(self) -> np.ndarray:
+        """The gyro bias now (turn-on, walk, instability, temperature), rad/s per axis."""
+        return np.array(self.errors.total_bias(self._temperature_c)[0])
+
+    @property
+    def accel_bias_m_s2(self) -> np.ndarray:
+        """The accelerometer bias now, m/s^2 per axis."""
+        return np.array(self.errors.total_bias(self._temperature_c)[1])
+
+    def temperature_at(self, t_s: float) -> float:
+        """The part's temperature ``t_s`` after switch-on (its warm-up profile)."""
+        return self.config.temperature_at(t_s)
+
+    def frame(self, rates_rad_s: Sequence[float], accel_m_s2: Sequence[float],
+              rpm: float = 0.0, temperature_c: float | None = None) -> bytes:
+        """Advance 10 ms and return the next 20-byte fast frame.
+
+        ``rpm`` is the propeller's (drives the vibration); ``temperature_c`` the part's now
+        (None: its own warm-up profile at this frame's time).
+        """
         cfg = self.config
-        rates = _vector3(rates_rad_s, "rates_rad_s")
-        accel = _vector3(accel_m_s2, "accel_m_s2")
-        dt_s = 1.0 / self.RATE_HZ
-        draw = self.rng.standard_normal(12)
-        self.gyro_bias_rad_s += draw[0:3] * cfg.gyro_bias_walk_rad_s_sqrt_s * math.sqrt(dt_s)
-        self.accel_bias_m_s2 += draw[3:6] * cfg.accel_bias_walk_m_s2_sqrt_s * math.sqrt(dt_s)
-        measured_rates = rates + self.gyro_bias_rad_s + draw[6:9] * cfg.gyro_noise_rad_s
-        measured_accel = accel + self.accel_bias_m_s2 + draw[9:12] * cfg.accel_noise_m_s2
+        r0, r1, r2 = _finite3(rates_rad_s, "rates_rad_s")
+        a0, a1, a2 = _finite3(accel_m_s2, "accel_m_s2")
+        if temperature_c is None:
+            temperature_c = cfg.temperature_at(self.frames / self.RATE_HZ)
+        self._temperature_c = temperature_c
+        out = self.errors.measure(r0, r1, r2, a0, a1, a2, rpm, temperature_c)
         counter = self.frames % CYCLE_FRAMES
         if counter == 0:
-            self._start_cycle(measured_rates, measured_accel)
+            self._start_cycle(out)
         if self.frames < cfg.self_test_frames:
             status = STATUS_SELF_TEST
         else:
             status = STATUS_GYRO_OK | STATUS_ACCEL_OK
-        self._sum[:3] += measured_rates
-        self._sum[3:] += measured_accel
+        total = self._sum
+        for i in range(6):
+            total[i] += out[i]
         self._count += 1
-        self.last_rates_rad_s = measured_rates
-        self.last_accel_m_s2 = measured_accel
+        self.last_rates_rad_s = np.array(out[:3])
+        self.last_accel_m_s2 = np.array(out[3:])
         self.frames += 1
-        return encode_fast_frame(
-            counter, status, measured_rates.tolist(), measured_accel.tolist(), self._words[counter]
-        )
+        return encode_fast_frame(counter, status, out[:3], out[3:], self._words[counter])
 
-    def _start_cycle(self, rates: np.ndarray, accel: np.ndarray) -> None:
+    def _start_cycle(self, out: list[float]) -> None:
         if self._count:
-            mean = self._sum / self._count
+            mean = [v / self._count for v in self._sum]
         else:
-            mean = np.concatenate([rates, accel])
-        self._sum[:] = 0.0
+            mean = list(out)
+        self._sum = [0.0] * 6
         self._count = 0
-        block = encode_slow_block(
-            mean[:3].tolist(), mean[3:].tolist(), self.config.temperature_c, self.config.bit_word
-        )
+        block = encode_slow_block(mean[:3], mean[3:], self._temperature_c, self.config.bit_word)
         self._words = slow_block_words(block)
+
+
+def _finite3(values: Sequence[float], what: str) -> tuple[float, float, float]:
+    """Three finite floats, or a ValueError naming ``what`` (scalar: numpy is slower here)."""
+    try:
+        x, y, z = values
+        x, y, z = float(x), float(y), float(z)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} needs 3 values, got {values!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        raise ValueError(f"{what} must be finite, got {values!r}")
+    return x, y, z
 
 
 # ---------------------------------------------------------------------------------------------
@@ -189,6 +270,47 @@ class GpsSimConfig:
     """Ellipsoid minus MSL; 0 matches a flight model whose altitudes are ellipsoidal."""
     date: dt.date = field(default_factory=lambda: dt.date(2003, 6, 1))
     """UTC date of second 0 of the simulation."""
+    rate_hz: float = 10.0
+    """Epochs per second (1, 5 or 10 in the profiles; the world needs 100 / rate whole)."""
+    latency_s: float = 0.05
+    """Mean age of an epoch when its bytes arrive (the world delays each epoch by a draw)."""
+    latency_jitter_s: float = 0.0
+    """Spread (1 sigma) of that age, epoch by epoch; never below zero."""
+    gm_horiz_m: float = 0.0
+    """Sigma of the first-order Gauss-Markov position error, per horizontal axis."""
+    gm_vert_m: float = 0.0
+    gm_tau_s: float = 300.0
+    multipath_per_h: float = 0.0
+    """Rate of multipath jumps: rare steps of the position error that then decay."""
+    multipath_m: float = 0.0
+    """Sigma of a jump, per horizontal axis (vertical: 1.5 times)."""
+    multipath_tau_s: float = 20.0
+    outage_per_h: float = 0.0
+    """Rate of outages (no fix) and their length."""
+    outage_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        every = 100.0 / self.rate_hz if self.rate_hz > 0 else math.inf
+        if not (1 <= every <= 100 and abs(every - round(every)) < 1e-9):
+            raise ValueError(f"GpsSimConfig.rate_hz must divide 100 Hz (1, 2, 5, 10 ...), "
+                             f"got {self.rate_hz!r}")
+        for name in ("latency_s", "latency_jitter_s", "gm_horiz_m", "gm_vert_m",
+                     "multipath_per_h", "multipath_m", "outage_per_h", "outage_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"GpsSimConfig.{name} must be finite and >= 0, got {value!r}")
+        for name in ("gm_tau_s", "multipath_tau_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"GpsSimConfig.{name} must be > 0, got {value!r}")
+
+    @property
+    def perfect(self) -> bool:
+        """No error, no jitter, no outage: what `--no-noise` asks of the receiver."""
+        return not (self.horiz_white_m or self.vert_white_m or self.horiz_walk_m_sqrt_s
+                    or self.vert_walk_m_sqrt_s or self.vel_noise_m_s or self.latency_jitter_s
+                    or self.gm_horiz_m or self.gm_vert_m or self.multipath_per_h
+                    or self.outage_per_h)
 
     @property
     def expected_sentences(self) -> tuple[str, ...]:
@@ -197,7 +319,13 @@ class GpsSimConfig:
 
 
 class GpsSim:
-    """10 Hz receiver epochs from the true position and NED velocity."""
+    """Receiver epochs (``config.rate_hz``) from the true position and NED velocity.
+
+    The original error model (white plus random-walk position error, white velocity noise)
+    draws from ``rng`` as it always did; the newer terms (Gauss-Markov error, multipath jumps,
+    outages, latency jitter) draw from an independent stream jumped off it, so a profile
+    without them reproduces earlier flights bit for bit.
+    """
 
     RATE_HZ = 10
 
@@ -207,9 +335,21 @@ class GpsSim:
         if cfg.talker not in TALKERS:
             raise ValueError(f"GpsSimConfig.talker must be one of {TALKERS}, got {cfg.talker!r}")
         self._walk_m = np.zeros(3)
+        self._extra = independent_stream(rng)
+        self._gm_m = [0.0, 0.0, 0.0]
+        self._gm_started = False
+        self._multipath_m = [0.0, 0.0, 0.0]
+        self._outage_until_s = -math.inf
         self._last_utc_s: float | None = None
         self.last_solution: GpsSolution | None = None
         """The solution encoded by the last call, before the text rounding."""
+        self.last_latency_s = cfg.latency_s
+        """How late the last epoch is to be delivered (the world's delay for it)."""
+        self.last_error_ned_m = (0.0, 0.0, 0.0)
+        """Position error of the last epoch, north, east, down (m)."""
+        self.in_outage = False
+        """Whether the last epoch fell in an outage (no fix)."""
+        self.outages = 0
 
     def epoch(
         self,
@@ -227,7 +367,7 @@ class GpsSim:
         if not all(math.isfinite(v) for v in truth):
             raise ValueError(f"GpsSim.epoch: inputs must be finite, got {truth!r}")
         dt_s = (
-            1.0 / self.RATE_HZ if self._last_utc_s is None else max(utc_s - self._last_utc_s, 0.0)
+            1.0 / cfg.rate_hz if self._last_utc_s is None else max(utc_s - self._last_utc_s, 0.0)
         )
         self._last_utc_s = utc_s
         draw = self.rng.standard_normal(9)
@@ -236,22 +376,30 @@ class GpsSim:
         self._walk_m += draw[0:3] * walk_sigma * math.sqrt(dt_s)
         error_m = self._walk_m + draw[3:6] * white_sigma
         velocity = np.array([vn_m_s, ve_m_s, vd_m_s]) + draw[6:9] * cfg.vel_noise_m_s
+        outage = self._extra_terms(utc_s, dt_s, error_m)
+        self.last_error_ned_m = (float(error_m[0]), float(error_m[1]), float(error_m[2]))
+        fix = 0 if outage else cfg.fix
+        std_h = math.hypot(cfg.horiz_white_m, cfg.horiz_walk_m_sqrt_s)
+        std_v = math.hypot(cfg.vert_white_m, cfg.vert_walk_m_sqrt_s)
+        if cfg.gm_horiz_m or cfg.gm_vert_m:
+            std_h = math.hypot(std_h, cfg.gm_horiz_m)
+            std_v = math.hypot(std_v, cfg.gm_vert_m)
         days, seconds = divmod(utc_s, 86400.0)
         common = GpsSolution(
             utc=seconds,
             date=cfg.date + dt.timedelta(days=int(days)),
             geoid_sep_m=cfg.geoid_sep_m,
-            fix=cfg.fix,
+            fix=fix,
             sats=cfg.sats,
             hdop=cfg.hdop,
             pdop=cfg.pdop,
             vdop=cfg.vdop,
             tdop=cfg.tdop,
-            alt_std_m=math.hypot(cfg.vert_white_m, cfg.vert_walk_m_sqrt_s),
-            lat_std_m=math.hypot(cfg.horiz_white_m, cfg.horiz_walk_m_sqrt_s),
-            lon_std_m=math.hypot(cfg.horiz_white_m, cfg.horiz_walk_m_sqrt_s),
+            alt_std_m=std_v,
+            lat_std_m=std_h,
+            lon_std_m=std_h,
         )
-        if cfg.fix == 0:
+        if fix == 0:
             solution = common  # a receiver without a fix leaves position and velocity empty
         else:
             north_deg, east_deg = _metres_to_degrees(lat_deg, error_m[0], error_m[1])
@@ -269,6 +417,43 @@ class GpsSim:
             )
         self.last_solution = solution
         return encode_epoch(solution, cfg.talker, cfg.sentences, cfg.ashtech_pos)
+
+    def _extra_terms(self, utc_s: float, dt_s: float, error_m: np.ndarray) -> bool:
+        """Add the correlated and multipath errors to ``error_m``, draw this epoch's latency;
+        return whether the epoch falls in an outage."""
+        cfg = self.config
+        extra = self._extra
+        if cfg.latency_jitter_s:
+            self.last_latency_s = max(0.0, cfg.latency_s
+                                      + cfg.latency_jitter_s * float(extra.standard_normal()))
+        else:
+            self.last_latency_s = cfg.latency_s
+        if cfg.gm_horiz_m or cfg.gm_vert_m:
+            sigma = (cfg.gm_horiz_m, cfg.gm_horiz_m, cfg.gm_vert_m)
+            n = extra.standard_normal(3)
+            if not self._gm_started:  # start from the stationary distribution
+                self._gm_m = [sigma[i] * float(n[i]) for i in range(3)]
+                self._gm_started = True
+            else:
+                phi = math.exp(-dt_s / cfg.gm_tau_s)
+                q = math.sqrt(1.0 - phi * phi)
+                self._gm_m = [phi * self._gm_m[i] + q * sigma[i] * float(n[i]) for i in range(3)]
+            error_m += self._gm_m
+        if cfg.multipath_per_h:
+            decay = math.exp(-dt_s / cfg.multipath_tau_s)
+            self._multipath_m = [m * decay for m in self._multipath_m]
+            if extra.random() < cfg.multipath_per_h / 3600.0 * dt_s:
+                jump = extra.standard_normal(3) * cfg.multipath_m * np.array([1.0, 1.0, 1.5])
+                self._multipath_m = [self._multipath_m[i] + float(jump[i]) for i in range(3)]
+            error_m += self._multipath_m
+        outage = utc_s < self._outage_until_s
+        if not outage and cfg.outage_per_h and cfg.outage_s:
+            if extra.random() < cfg.outage_per_h / 3600.0 * dt_s:
+                self._outage_until_s = utc_s + cfg.outage_s
+                self.outages += 1
+                outage = True
+        self.in_outage = outage
+        return outage
 
 
 # ---------------------------------------------------------------------------------------------

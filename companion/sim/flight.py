@@ -365,6 +365,8 @@ class FlightModel:
         self._elev_node = nodes["fcs/elevator-cmd-norm"]
         self._rud_node = nodes["fcs/rudder-cmd-norm"]
         self._thr_nodes = [nodes[f"fcs/throttle-cmd-norm[{i}]"] for i in range(self._n_engines)]
+        rpm = pm.get_node("propulsion/engine[0]/propeller-rpm", False) if self._n_engines else None
+        self._rpm_node = rpm
 
     def _apply_ic(self, theta_deg: float, throttle: float) -> None:
         """Load the requested start point into JSBSim and initialise the state from it."""
@@ -394,8 +396,9 @@ class FlightModel:
         if self._turbulence_severity:
             f["atmosphere/turb-type"] = 3  # MIL-F-8785C / MIL-HDBK-1797 (Tustin)
             # Low-altitude intensity follows the wind at 20 ft: MIL-F-8785C pairs light,
-            # moderate and severe turbulence with 15, 30 and 45 kt.
-            w20_kt = (15.0, 15.0, 30.0, 30.0, 45.0, 45.0, 45.0)[self._turbulence_severity - 1]
+            # moderate and severe turbulence with 15, 30 and 45 kt, and JSBSim's severity
+            # index (its probability-of-exceedance curve) names 3 light, 4 moderate, 6 severe.
+            w20_kt = (15.0, 15.0, 15.0, 30.0, 30.0, 45.0, 45.0)[self._turbulence_severity - 1]
             f["atmosphere/turbulence/milspec/windspeed_at_20ft_AGL-fps"] = w20_kt * KT_M_S / FT_M
             f["atmosphere/turbulence/milspec/severity"] = self._turbulence_severity
         else:
@@ -682,6 +685,12 @@ class FlightModel:
             alpha_rad=alpha,
             beta_rad=beta,
         )
+
+    def propeller_rpm(self) -> float:
+        """The first engine's propeller speed (rev/min), which drives the IMU's vibration;
+        0 for a model without one."""
+        node = self._rpm_node
+        return node.get_double_value() if node is not None else 0.0
 
     def property(self, name: str) -> float:
         """Read any JSBSim property (diagnostics and tests; not part of the truth contract)."""

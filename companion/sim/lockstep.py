@@ -162,6 +162,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
         gps_latency_s=sim.gps_latency_s, gps_ashtech=sim.gps_ashtech,
         faults=dict(parse_fault(f) for f in sim.faults),
         vanish=[parse_vanish(v) for v in sim.vanish], imu_noise=not sim.no_noise,
+        imu_profile=getattr(sim, "imu_profile", None), gps_profile=getattr(sim, "gps_profile", None),
+        turbulence=getattr(sim, "turbulence", None),
         auto_switch_s=sim.auto_switch_s), ports=ports, clock=clock)
     ports["servo"].on_driver_write = world.answer_servo
 
@@ -189,7 +191,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
         rt = Runtime(cfg, RuntimeOptions(
             clock=clock, flight_dir=flight_dir, mavlink=False, legacy=False,
             log_writer_thread=False,
-            extra_run_info={"simulation": {**vars(sim), "lockstep": True}},
+            extra_run_info={"simulation": {**vars(sim), "lockstep": True,
+                                           "sensors": world.sensors.metadata()}},
             extra_bridges=[inject] if faults else []))
         if sim.gps_ashtech:
             rt.ctx.params.set("GPS_PASHR", 1)
@@ -222,6 +225,9 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
     summary = rt.summary()
     summary["stop_reason"] = reason
     summary["simulator"] = stats
+    sensors = world.sensors.metadata()
+    summary["sensors"] = {k: sensors[k] for k in ("imu_profile", "gps_profile", "turbulence",
+                                                  "no_noise")}
     if injectors:
         summary["thread_faults"] = [a for inj in injectors for a in inj.armed]
     sim_s = (clock.monotonic_ns() - clock.epoch[0]) / 1e9

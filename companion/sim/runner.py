@@ -42,7 +42,8 @@ class SimOptions:
     aircraft: str = "c172p"
     scale: float = 1.0
     wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gps_latency_s: float = 0.05
+    gps_latency_s: float | None = None
+    """Overrides the GPS profile's mean latency (None: the profile's)."""
     gps_ashtech: bool = False
     faults: list[str] = field(default_factory=list)
     vanish: list[str] = field(default_factory=list)
@@ -50,6 +51,12 @@ class SimOptions:
     """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.thread_faults)."""
     auto_switch_s: float = 20.0
     no_noise: bool = False
+    """Every sensor perfect (IMU and GPS); the air calm unless `turbulence` is given."""
+    imu_profile: str | None = None
+    """`companion.sim.profiles` names; None: the realistic defaults (consumer MEMS, u-blox M8
+    class, moderate turbulence; calm air under `no_noise`)."""
+    gps_profile: str | None = None
+    turbulence: str | None = None
     clock_steps: list[str] = field(default_factory=list)
     """`AT_S:STEP_S` wall-clock steps in the runtime's process (companion.sim.clock_faults)."""
 
@@ -63,11 +70,18 @@ class WorldProcess:
         cmd = [sys.executable, "-m", "companion.sim.world", "--scenario", opts.scenario,
                "--seed", str(opts.seed), "--aircraft", opts.aircraft, "--scale", str(clock.scale),
                "--epoch", str(mono0), str(real0), "--device-dir", str(device_dir),
-               "--flight-dir", str(flight_dir), "--gps-latency", str(opts.gps_latency_s),
+               "--flight-dir", str(flight_dir),
                "--auto-switch", str(opts.auto_switch_s),
                "--wind", *(str(w) for w in opts.wind_ned_m_s)]
         if duration_s:
             cmd += ["--duration", str(duration_s + 5.0)]  # outlive the runtime, never starve it
+        if opts.gps_latency_s is not None:
+            cmd += ["--gps-latency", str(opts.gps_latency_s)]
+        for option, value in (("--imu-profile", opts.imu_profile),
+                              ("--gps-profile", opts.gps_profile),
+                              ("--turbulence", opts.turbulence)):
+            if value is not None:
+                cmd += [option, value]
         if opts.gps_ashtech:
             cmd.append("--gps-ashtech")
         if opts.no_noise:
@@ -150,7 +164,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             while True:
                 rt = Runtime(cfg, RuntimeOptions(
                     clock=clock, flight_dir=flight_dir,
-                    extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid}},
+                    extra_run_info={"simulation": {**vars(sim), "pid": world.proc.pid,
+                                                   "sensors": sensor_metadata(sim)}},
                     extra_bridges=live_view_bridges(cfg) + ([inject] if faults else [])))
                 if sim.gps_ashtech:
                     rt.ctx.params.set("GPS_PASHR", 1)
@@ -177,6 +192,9 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
             stats = world.stop()
     summary = rt.summary()
     summary["simulator"] = stats
+    sensors = sensor_metadata(sim)
+    summary["sensors"] = {k: sensors[k] for k in ("imu_profile", "gps_profile", "turbulence",
+                                                  "no_noise")}
     if injectors:
         summary["thread_faults"] = [a for inj in injectors for a in inj.armed]
     if steps.applied:
@@ -185,6 +203,16 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
     summary["clock_scale"] = clock.scale
     write_json_bounded(flight_dir / "summary.json", summary, 2.0)
     return summary
+
+
+def sensor_metadata(sim: SimOptions) -> dict[str, Any]:
+    """The flight's sensor and air profiles, names and resolved numbers, for run.json (the
+    world resolves them the same way from the same options)."""
+    from companion.sim.profiles import resolve_sensors
+
+    return resolve_sensors(sim.imu_profile, sim.gps_profile, sim.turbulence,
+                           no_noise=sim.no_noise, gps_latency_s=sim.gps_latency_s,
+                           gps_ashtech=sim.gps_ashtech).metadata()
 
 
 def shift_endpoint_port(url: str, offset: int) -> str:

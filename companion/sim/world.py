@@ -42,18 +42,17 @@ from companion.sim.devices import (
     FaultInjector,
     FaultPlan,
     GpsSim,
-    GpsSimConfig,
     ImuSim,
-    ImuSimConfig,
     ServoBoardSim,
 )
 from companion.sim.flight import FlightModel, FlightModelError, TruthState
+from companion.sim.profiles import GPS_PROFILES, IMU_PROFILES, TURBULENCE, resolve_sensors
 from companion.sim.scenarios import Pilot, surfaces_from_channels
 
 log = logging.getLogger(__name__)
 
 IMU_DT_S = 0.01
-GPS_EVERY = 10  # IMU ticks per GPS epoch
+GPS_EVERY = 10  # IMU ticks per GPS epoch at 10 Hz; a GPS profile's rate sets the world's own
 PILOT_EVERY = 2  # IMU ticks per servo-board frame (50 Hz)
 TRUTH_EVERY = 1
 GO_TIMEOUT_S = 120.0
@@ -92,11 +91,17 @@ class WorldOptions:
     device_dir: Path = Path(".")
     flight_dir: Path | None = None
     duration_s: float = 0.0  # 0: until signalled
-    gps_latency_s: float = 0.05
+    gps_latency_s: float | None = None
+    """Overrides the GPS profile's mean latency (None: the profile's)."""
     gps_ashtech: bool = False
     faults: dict[str, FaultPlan] = field(default_factory=dict)
     vanish: list[Vanish] = field(default_factory=list)
     imu_noise: bool = True
+    """False (`--no-noise`): every sensor perfect, the air calm unless `turbulence` says."""
+    imu_profile: str | None = None
+    """IMU, GPS and air profiles (`companion.sim.profiles`; None: the realistic defaults)."""
+    gps_profile: str | None = None
+    turbulence: str | None = None
     auto_switch_s: float = 20.0
     settle_s: float = 3.0
 
@@ -167,19 +172,19 @@ class World:
         self.opts = opts
         self.clock = clock if clock is not None else Clock(opts.scale, opts.epoch)
         rng = np.random.default_rng(opts.seed)
-        self.model = FlightModel(opts.aircraft, wind_ned_m_s=opts.wind_ned_m_s, seed=opts.seed)
+        self.sensors = sensors = resolve_sensors(
+            opts.imu_profile, opts.gps_profile, opts.turbulence, no_noise=not opts.imu_noise,
+            gps_latency_s=opts.gps_latency_s, gps_ashtech=opts.gps_ashtech)
+        self.model = FlightModel(opts.aircraft, wind_ned_m_s=opts.wind_ned_m_s, seed=opts.seed,
+                                 turbulence_severity=sensors.turbulence_severity)
         trim_throttle = float(self.model.trim_controls.throttle)
         self.pilot = Pilot(opts.scenario, opts.seed, aircraft=opts.aircraft,
                            auto_switch_s=opts.auto_switch_s, trim_throttle=trim_throttle)
         self.settle_sticks = [1500, 1500, int(round(1000 + 1000 * trim_throttle)), 1500,
                               1000, 1500, 1500, 1500]
-        imu_cfg = ImuSimConfig() if opts.imu_noise else ImuSimConfig(
-            gyro_noise_rad_s=0.0, accel_noise_m_s2=0.0, gyro_bias_sigma_rad_s=0.0,
-            accel_bias_sigma_m_s2=0.0, gyro_bias_walk_rad_s_sqrt_s=0.0,
-            accel_bias_walk_m_s2_sqrt_s=0.0)
-        self.imu = ImuSim(np.random.default_rng(rng.integers(2**63)), imu_cfg)
-        self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)),
-                          GpsSimConfig(ashtech_pos=opts.gps_ashtech))
+        self.imu = ImuSim(np.random.default_rng(rng.integers(2**63)), sensors.imu)
+        self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
+        self.gps_every = int(round(1.0 / (IMU_DT_S * sensors.gps.rate_hz)))
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
         self.injectors = {dev: FaultInjector(plan, np.random.default_rng(rng.integers(2**63)))
                           for dev, plan in opts.faults.items()}
@@ -344,6 +349,7 @@ class World:
             "servo_answers": self.board.answered,
             "dropped_bytes": {d: p.dropped_bytes for d, p in self.ptys.items()},
             "faults": {d: dataclasses.asdict(i.counts) for d, i in self.injectors.items()},
+            "gps_outages": self.gps.outages,
         }
 
     def _tick(self, model: FlightModel) -> None:
@@ -368,13 +374,15 @@ class World:
         self.ticks = k + 1
         self._vanish_faults()
         frame = self.imu.frame((truth.p_rad_s, truth.q_rad_s, truth.r_rad_s),
-                               (truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2))
+                               (truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2),
+                               model.propeller_rpm(), self.imu.temperature_at(self.t_s))
         self.ptys["imu"].write(self._inject("imu", frame))
-        if self.ticks % GPS_EVERY == 0:
+        if self.ticks % self.gps_every == 0:
             epoch = self.gps.epoch(self.start_utc_s + self.t_s + self._utc_step_s(),
                                    truth.lat_deg, truth.lon_deg,
                                    truth.alt_m, truth.vn_m_s, truth.ve_m_s, truth.vd_m_s)
-            self.gps_queue.append((self.t_s + self.opts.gps_latency_s, epoch))
+            # each epoch late by its own draw; the serial line keeps them in order
+            self.gps_queue.append((self.t_s + self.gps.last_latency_s, epoch))
         while self.gps_queue and self.gps_queue[0][0] <= self.t_s + 1e-9:
             _, data = self.gps_queue.pop(0)
             self.ptys["gps"].write(self._inject("gps", data))
@@ -468,7 +476,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device-dir", type=Path, required=True)
     ap.add_argument("--flight-dir", type=Path)
     ap.add_argument("--duration", type=float, default=0.0)
-    ap.add_argument("--gps-latency", type=float, default=0.05)
+    ap.add_argument("--gps-latency", type=float)
+    ap.add_argument("--imu-profile", choices=list(IMU_PROFILES))
+    ap.add_argument("--gps-profile", choices=list(GPS_PROFILES))
+    ap.add_argument("--turbulence", choices=list(TURBULENCE))
     ap.add_argument("--gps-ashtech", action="store_true")
     ap.add_argument("--fault", action="append", default=[])
     ap.add_argument("--vanish", action="append", default=[])
@@ -488,6 +499,7 @@ def main(argv: list[str] | None = None) -> int:
         epoch=tuple(args.epoch) if args.epoch else None, device_dir=args.device_dir,
         flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
         gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
+        imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
         auto_switch_s=args.auto_switch)
     try:
         world = World(opts)
