@@ -38,6 +38,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("fleet_router", []),
     ("wakeup", []),
     ("lockstep", []),
+    ("real_imu", []),
 ]
 
 

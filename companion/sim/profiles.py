@@ -71,7 +71,10 @@ def _accel_noise(density_ug_sqrt_hz: float) -> float:
 _CONSUMER = ImuSimConfig(
     gyro_noise_rad_s=_gyro_noise(0.005),            # rate noise spectral density 0.005 dps/rtHz
     accel_noise_m_s2=_accel_noise(400.0),           # power spectral density 400 ug/rtHz
-    gyro_bias_sigma_rad_s=20.0 / 3.0 * DEG,         # initial ZRO tolerance +-20 dps
+    # initial ZRO tolerance +-20 dps is what the autopilot's at-rest gyro calibration at
+    # power-up removes; what is left at take-off: assumed 0.2 dps (the warm-up drift below
+    # comes on top)
+    gyro_bias_sigma_rad_s=0.2 * DEG,
     # zero-g initial tolerance +-50 mg (x, y) is what the six-position accelerometer
     # calibration every autopilot asks for removes; what is left: assumed 5 mg
     accel_bias_sigma_m_s2=0.005 * G_M_S2,
