@@ -206,7 +206,7 @@ class Eskf:
         yaw_align_std_rad: float = 0.3,
         gps_lag_s: float = 0.0,
         gps_lag_std_s: float = 0.0,
-        gps_lag_rw_s_rt_s: float = 1e-3,
+        gps_lag_rw_s_rt_s: float = 2e-4,
         max_gps_lag_s: float = 0.5,
         cov_period_s: float = 0.01,
         history_s: float = 1.0,
