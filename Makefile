@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/companion sim --duration 120 --scenario mixed --realtime
+	$(BIN)/companion sim --duration 120 --scenario mixed --realtime --horizon-camera thesis
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

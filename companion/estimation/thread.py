@@ -166,6 +166,17 @@ class EstimatorThread(ManagedThread):
         self._publish(core.filter)
         return len(samples)
 
+    def counters(self) -> dict[str, int]:
+        """What the filter did with its aiding, for the flight summary: whether a camera's
+        horizon fixes or the GPS were used at all is the first question after a flight. Counts
+        since the filter's last (re)start."""
+        out = super().counters()
+        core = self.core
+        if core is not None:
+            out.update(gps_accepted=core.gps_accepted, gps_rejected=core.gps_rejected,
+                       horizon_used=core.horizon_used)
+        return out
+
     @property
     def gps_accepted(self) -> int:
         return self.core.gps_accepted if self.core is not None else 0

@@ -384,9 +384,9 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     camera = None
     if spec.horizon_camera:
         # the camera does not feed back into the flight, so it can run over the finished truth
-        from companion.sim.camera import SimCamera, horizon_measurements
+        from companion.sim.camera import SimCamera, camera_seed, horizon_measurements
 
-        cam = SimCamera(np.random.default_rng([spec.seed, 0x48_5A_4E]), rate_hz=spec.horizon_rate_hz,
+        cam = SimCamera(camera_seed(spec.seed), rate_hz=spec.horizon_rate_hz,
                         latency_s=CAMERA_LATENCY_S, disturbance=spec.horizon_camera)
         horizon = horizon_measurements(cam, t_s, truth[:, 0:3])
         camera = cam.stats.summary()

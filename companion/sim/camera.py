@@ -72,6 +72,7 @@ __all__ = [
     "SlotLink",
     "WorldCamera",
     "attach_camera",
+    "camera_seed",
     "default_camera_model",
     "horizon_measurements",
 ]
@@ -90,6 +91,12 @@ GROSS_PITCH_DEG = 5.0
 """A detection this far from the truth is a gross error (about 10 % of the frame height in
 pitch, the horizon benchmark's threshold)."""
 SOURCE = "sim_camera"
+
+
+def camera_seed(flight_seed: int) -> np.random.Generator:
+    """The camera's generator for a flight seed: its own stream, so a flight with the camera
+    draws every other sensor's noise as one without it (offline and live alike)."""
+    return np.random.default_rng([flight_seed, 0x48_5A_4E])
 
 
 def default_camera_model() -> CameraModel:

@@ -55,7 +55,7 @@ KEYS: dict[str, Any] = {
     "scenario": str, "seed": int, "aircraft": str, "wind": list, "gps_latency_s": (int, float),
     "duration_s": (int, float), "faults": list, "vanish": list, "thread_faults": list,
     "no_noise": bool, "params": dict, "lockstep": bool, "speed": (int, float),
-    "imu_profile": str, "gps_profile": str, "turbulence": str,
+    "imu_profile": str, "gps_profile": str, "turbulence": str, "horizon_camera": str,
 }
 """What a flight may set, with its type (`wind` is [N, E, D] in m/s)."""
 DEFAULTS: dict[str, Any] = {"scenario": "mixed", "seed": 0, "aircraft": "c172p",
@@ -148,6 +148,12 @@ def _checked(table: dict[str, Any], where: str) -> dict[str, Any]:
         if key in ("faults", "vanish", "thread_faults") and not all(
                 isinstance(v, str) for v in value):
             raise CampaignError(f"{where}: {key}: expected a list of strings")
+        if key == "horizon_camera":
+            from companion.sim.world import HORIZON_CAMERA_CHOICES
+
+            if value not in HORIZON_CAMERA_CHOICES:
+                raise CampaignError(f"{where}: horizon_camera = {value!r}: one of "
+                                    f"{', '.join(HORIZON_CAMERA_CHOICES)}")
         if key in ("imu_profile", "gps_profile", "turbulence"):
             from companion.sim.profiles import gps_profile, imu_profile, turbulence_severity
 
@@ -186,7 +192,15 @@ def flight_command(spec: FlightSpec, campaign_dir: Path) -> list[str]:
            "--scenario", str(s["scenario"]), "--seed", str(s["seed"]),
            "--aircraft", str(s["aircraft"]), "--duration", repr(float(s["duration_s"])),
            "--wind", *(repr(float(w)) for w in s["wind"]),
-           "--mavlink", "none", "--no-legacy"]
+           "--mavlink", "none"]
+    camera = str(s.get("horizon_camera", "off"))
+    if camera != "off":
+        cmd += ["--horizon-camera", camera]
+    if camera != "off" and not s.get("lockstep", True):
+        # the camera's fixes travel on the legacy command port: any free one, on loopback
+        cmd += ["--legacy-listen", "0"]
+    else:
+        cmd.append("--no-legacy")
     if s.get("lockstep", True):
         cmd.append("--lockstep")
     elif s.get("speed"):

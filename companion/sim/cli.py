@@ -57,6 +57,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         return run_fleet(base, args.vehicles, args.legacy_listen or 5500,
                          mavlink_port_step=args.mavlink_port_step)
     cfg = config_from_args(args)
+    if args.horizon_camera != "off" and not args.lockstep and not cfg.legacy.enabled:
+        print("companion sim: --horizon-camera sends HORIZON_ATTITUDE to the legacy command "
+              "port: the legacy protocol must be on (drop --no-legacy)", file=sys.stderr)
+        return 2
     if not args.legacy_dest and not _configured(args, "legacy.dest"):
         # a simulation stays on this machine: no broadcast onto the network
         cfg.legacy.dest = "127.0.0.1:5501"
@@ -70,7 +74,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
                      auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
                      no_noise=args.no_noise, imu_profile=args.imu_profile,
-                     gps_profile=args.gps_profile, turbulence=args.turbulence)
+                     gps_profile=args.gps_profile, turbulence=args.turbulence,
+                     horizon_camera=args.horizon_camera)
 
     def live(rt: object) -> None:
         if sys.stderr.isatty() and args.verbose == 0:
@@ -217,6 +222,12 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--turbulence", metavar="LEVEL",
                    help="JSBSim MIL-F-8785C turbulence: none, light, moderate (default; none "
                    "under --no-noise), severe")
+    p.add_argument("--horizon-camera", default="off", metavar="LEVEL",
+                   choices=("off", "clean", "light", "thesis"),
+                   help="a forward camera for the horizon experiment: frames rendered at the "
+                   "true attitude, disturbed as the thesis's video link (light, thesis) or "
+                   "clean, through the real detector; its fixes reach the estimator as "
+                   "HORIZON_ATTITUDE on the legacy command port (default off; docs/horizon.md)")
     p.add_argument("--gps-ashtech", action="store_true", help="add $PASHR,POS sentences")
     p.add_argument("--fault", action="append", default=[], metavar="DEV:SPEC",
                    help="inject device faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,"

@@ -164,7 +164,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
         vanish=[parse_vanish(v) for v in sim.vanish], imu_noise=not sim.no_noise,
         imu_profile=getattr(sim, "imu_profile", None), gps_profile=getattr(sim, "gps_profile", None),
         turbulence=getattr(sim, "turbulence", None),
-        auto_switch_s=sim.auto_switch_s), ports=ports, clock=clock)
+        auto_switch_s=sim.auto_switch_s, horizon_camera=getattr(sim, "horizon_camera", "off")),
+        ports=ports, clock=clock)
     ports["servo"].on_driver_write = world.answer_servo
 
     def opener(url: str, timeout_s: float | None) -> LockstepSerial:
@@ -198,6 +199,11 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             rt.ctx.params.set("GPS_PASHR", 1)
         if on_runtime is not None:
             on_runtime(rt)
+        # no ground links here: the camera's fixes go into the slot the legacy adapter writes,
+        # and each frame is detected inside the world's tick (simulated time stands still)
+        from companion.sim.camera import SlotLink
+
+        world.attach_camera(SlotLink(rt.ctx.state.horizon), threaded=False)
 
         def drain() -> None:
             if rt.logs is not None:

@@ -59,6 +59,9 @@ class SimOptions:
     turbulence: str | None = None
     clock_steps: list[str] = field(default_factory=list)
     """`AT_S:STEP_S` wall-clock steps in the runtime's process (companion.sim.clock_faults)."""
+    horizon_camera: str = "off"
+    """The forward camera of the horizon experiment (`companion.sim.world.HORIZON_CAMERA_CHOICES`):
+    its detector's fixes reach the estimator as HORIZON_ATTITUDE on the legacy command port."""
 
 
 class WorldProcess:
@@ -86,6 +89,8 @@ class WorldProcess:
             cmd.append("--gps-ashtech")
         if opts.no_noise:
             cmd.append("--no-noise")
+        if opts.horizon_camera != "off":
+            cmd += ["--horizon-camera", opts.horizon_camera]
         for f in opts.faults:
             cmd += ["--fault", f]
         for v in opts.vanish:
@@ -114,11 +119,12 @@ class WorldProcess:
             raise SimError(f"the simulator did not start (exit code {self.proc.returncode})")
         return dict(result["devices"])
 
-    def go(self) -> None:
-        """Start the flight: the runtime's ports are open."""
+    def go(self, **extra: Any) -> None:
+        """Start the flight: the runtime's ports are open; `extra` is what only the started
+        runtime knows (`horizon_dest`, `vehicle_id`), as JSON on the GO line."""
         assert self.proc.stdin is not None
         try:
-            self.proc.stdin.write("GO\n")
+            self.proc.stdin.write("GO" + (" " + json.dumps(extra) if extra else "") + "\n")
             self.proc.stdin.flush()
         except (BrokenPipeError, OSError) as exc:
             raise SimError(f"the simulator died before the flight started: {exc}") from None
@@ -173,9 +179,10 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                     on_runtime(rt)
                 if steps.pending:
                     rt.manager.on_tick.append(steps.tick)
+                go = _camera_go(sim, rt) if first else {}  # refused before anything runs
                 rt.start()
                 if first:
-                    world.go()
+                    world.go(**go)
                     first = False
                     t0 = time.monotonic()  # the flight starts now; a reboot does not extend it
                 remaining = None
@@ -203,6 +210,22 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
     summary["clock_scale"] = clock.scale
     write_json_bounded(flight_dir / "summary.json", summary, 2.0)
     return summary
+
+
+def _camera_go(sim: SimOptions, rt: Runtime) -> dict[str, Any]:
+    """Where the world's camera sends its fixes: the legacy adapter's bound command port (it
+    may have been asked for port 0), on loopback unless it listens on one address only."""
+    if sim.horizon_camera == "off":
+        return {}
+    from legacy_protocol.adapter import LegacyAdapter
+
+    for bridge in rt.bridges:
+        if isinstance(bridge, LegacyAdapter):
+            host, port = bridge.listen_addr[:2]
+            host = "127.0.0.1" if host in ("0.0.0.0", "") else host
+            return {"horizon_dest": f"{host}:{port}", "vehicle_id": rt.cfg.vehicle.id}
+    raise SimError("--horizon-camera sends HORIZON_ATTITUDE to the legacy command port: "
+                   "the legacy protocol must be on (drop --no-legacy)")
 
 
 def sensor_metadata(sim: SimOptions) -> dict[str, Any]:

@@ -13,6 +13,11 @@ udev's /dev/serial/by-id links are to a USB adapter's ttyUSBn: a port can vanish
 A lockstep flight (`companion.sim.lockstep`) builds the same `World` with in-process ports and
 runs its tick as a task on simulated time (`run_lockstep`) instead of this process's loop.
 
+With `horizon_camera` set, the world also carries the forward camera of the thesis's horizon
+experiment (`companion.sim.camera`): frames rendered at the true attitude go through the real
+detector, and its fixes reach the runtime as HORIZON_ATTITUDE datagrams on the runtime's legacy
+command port, which the runtime names in its GO line (it may have bound port 0).
+
 Size: the tick (flight model, pilot, devices, faults, truth log) is shared by the two ways of
 running the world, and the fault options' parsing sits beside the faults it configures.
 """
@@ -30,10 +35,10 @@ import sys
 import threading
 import time
 import tty
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,6 +54,9 @@ from companion.sim.flight import FlightModel, FlightModelError, TruthState
 from companion.sim.profiles import GPS_PROFILES, IMU_PROFILES, TURBULENCE, resolve_sensors
 from companion.sim.scenarios import Pilot, surfaces_from_channels
 
+if TYPE_CHECKING:
+    from companion.sim.camera import CameraResult, WorldCamera
+
 log = logging.getLogger(__name__)
 
 IMU_DT_S = 0.01
@@ -57,6 +65,9 @@ PILOT_EVERY = 2  # IMU ticks per servo-board frame (50 Hz)
 TRUTH_EVERY = 1
 GO_TIMEOUT_S = 120.0
 DEVICES = ("imu", "gps", "servo")
+HORIZON_CAMERA_CHOICES = ("off", "clean", "light", "thesis")
+"""`--horizon-camera`: no camera, or the camera with that level of video disturbance
+(`companion.sim.camera.DISTURBANCE_LEVELS`, where "clean" is "none")."""
 
 FMT_TRUTH = 1
 FMT_SURFACES = 2
@@ -104,6 +115,9 @@ class WorldOptions:
     turbulence: str | None = None
     auto_switch_s: float = 20.0
     settle_s: float = 3.0
+    horizon_camera: str = "off"
+    """`HORIZON_CAMERA_CHOICES`: no camera, or one whose frames are clean or disturbed as the
+    thesis's radio video link disturbed them (light, thesis)."""
 
 
 class Pty:
@@ -204,6 +218,41 @@ class World:
         self.start_utc_s = 12 * 3600.0
         self.stop_reason = "stopped"
         self._truth: TruthState | None = None
+        self.camera: WorldCamera | None = None
+        self._camera_stats: dict[str, Any] | None = None
+
+    # ------------------------------------------------------------------ horizon camera
+    def attach_camera(self, link: Callable[[CameraResult, int], bool] | str,
+                      *, vehicle_id: int = 1, threaded: bool = True) -> None:
+        """Start the camera (`opts.horizon_camera`): its fixes go to `link`, either a
+        callable (lockstep: `SlotLink`) or the runtime's legacy command port as `HOST:PORT`.
+        Its generator is seeded from the world's seed alone, so adding a camera changes no
+        other sensor's draws."""
+        from companion.sim.camera import LATENCY_S as CAMERA_LATENCY_S
+        from companion.sim.camera import (
+            LegacyHorizonLink,
+            SimCamera,
+            WorldCamera,
+            camera_seed,
+        )
+
+        if self.opts.horizon_camera == "off":
+            return
+        level = self.opts.horizon_camera
+        camera = SimCamera(camera_seed(self.opts.seed), latency_s=CAMERA_LATENCY_S,
+                           disturbance="none" if level == "clean" else level)
+        if isinstance(link, str):
+            host, sep, port = link.rpartition(":")
+            if not sep or not host or not port.isdigit():
+                raise ValueError(f"horizon camera: expected HOST:PORT, got {link!r}")
+            link = LegacyHorizonLink(host, int(port), vehicle_id, self.clock.realtime_ns)
+        self.camera = WorldCamera(camera, link, self.clock, threaded=threaded)
+
+    def _close_camera(self) -> dict[str, Any] | None:
+        if self.camera is None:
+            return None
+        camera, self.camera = self.camera, None
+        return camera.close()
 
     # ------------------------------------------------------------------ servo board (own thread)
     def _board_loop(self) -> None:
@@ -302,6 +351,7 @@ class World:
         finally:
             self._stop.set()
             board.join(1.0)
+            self._camera_stats = self._close_camera()
             if self.tlog is not None:
                 self.tlog.end()
             if self.logs is not None:
@@ -333,6 +383,7 @@ class World:
 
     def close_lockstep(self, host_s: float) -> dict[str, Any]:
         """End a lockstep world: its truth log closed, its figures."""
+        self._camera_stats = self._close_camera()
         if self.tlog is not None:
             self.tlog.end()
             self.tlog = None
@@ -350,6 +401,7 @@ class World:
             "dropped_bytes": {d: p.dropped_bytes for d, p in self.ptys.items()},
             "faults": {d: dataclasses.asdict(i.counts) for d, i in self.injectors.items()},
             "gps_outages": self.gps.outages,
+            **({"camera": self._camera_stats} if self._camera_stats is not None else {}),
         }
 
     def _tick(self, model: FlightModel) -> None:
@@ -377,6 +429,8 @@ class World:
                                (truth.ax_m_s2, truth.ay_m_s2, truth.az_m_s2),
                                model.propeller_rpm(), self.imu.temperature_at(self.t_s))
         self.ptys["imu"].write(self._inject("imu", frame))
+        if self.camera is not None:
+            self.camera.on_tick(self.t_s, truth.roll_rad, truth.pitch_rad)
         if self.ticks % self.gps_every == 0:
             epoch = self.gps.epoch(self.start_utc_s + self.t_s + self._utc_step_s(),
                                    truth.lat_deg, truth.lon_deg,
@@ -485,6 +539,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vanish", action="append", default=[])
     ap.add_argument("--auto-switch", type=float, default=20.0)
     ap.add_argument("--no-noise", action="store_true")
+    ap.add_argument("--horizon-camera", default="off", choices=HORIZON_CAMERA_CHOICES)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="sim: %(levelname)s %(message)s")
     try:
@@ -500,7 +555,7 @@ def main(argv: list[str] | None = None) -> int:
         flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
         gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
         imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
-        auto_switch_s=args.auto_switch)
+        auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera)
     try:
         world = World(opts)
     except (FlightModelError, ValueError) as exc:
@@ -513,11 +568,23 @@ def main(argv: list[str] | None = None) -> int:
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
     print("READY " + json.dumps(ready), flush=True)
     # Fly only once the runtime has opened its ports: until then nobody would read the devices.
+    # The GO line may carry what only the started runtime knows: `GO {"horizon_dest": ...}`.
     ready_to_fly, _, _ = select.select([sys.stdin], [], [], GO_TIMEOUT_S)
-    if not ready_to_fly or sys.stdin.readline().strip() != "GO":
+    line = sys.stdin.readline().strip() if ready_to_fly else ""
+    word, _, extra = line.partition(" ")
+    if word != "GO":
         for pty in world.ptys.values():
             pty.close()
         print("companion.sim.world: the runtime never said GO", file=sys.stderr)
+        return 1
+    try:
+        go = json.loads(extra) if extra else {}
+        if opts.horizon_camera != "off":
+            world.attach_camera(str(go["horizon_dest"]), vehicle_id=int(go.get("vehicle_id", 1)))
+    except (ValueError, KeyError, TypeError) as exc:
+        for pty in world.ptys.values():
+            pty.close()
+        print(f"companion.sim.world: bad GO line {line!r}: {exc}", file=sys.stderr)
         return 1
     stats = world.run()
     try:
