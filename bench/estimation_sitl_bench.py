@@ -407,8 +407,10 @@ def print_knowledge(args: argparse.Namespace) -> None:
           f"its defaults (EST_GYR_NSD {est['GYR_NSD']:g} rad/s/rtHz, EST_GB_RW {est['GB_RW']:g}, "
           f"EST_AB_RW {est['AB_RW']:g}), not the profile's (gyro noise "
           f"{imu.gyro_noise_rad_s:g} rad/s per sample, bias walk "
-          f"{imu.gyro_bias_walk_rad_s_sqrt_s:g}); it does not model scale factors, cross-axis "
-          "sensitivity, vibration or temperature. The profile's accelerometer bias and mounting "
+          f"{imu.gyro_bias_walk_rad_s_sqrt_s:g}); it reads the IMU's temperature and lets its "
+          f"biases move with it (EST_GB_TEMP {est.get('GB_TEMP', 0.0):g}, EST_AB_TEMP "
+          f"{est.get('AB_TEMP', 0.0):g}: not the part's coefficients, which it is not told); it "
+          "does not model scale factors, cross-axis sensitivity or vibration. The profile's accelerometer bias and mounting "
           "misalignment are what a six-position and a level calibration leave (docs/sitl.md).")
 
 

@@ -58,6 +58,8 @@ def test_a_fast_flight_sends_the_detectors_fixes_and_the_estimator_fuses_them(
     # most of what was sent after the filter started (a few seconds in) was fused
     used = est["counters"]["horizon_used"]
     assert used >= 0.7 * (cam["sent"] - 10 * 10), (used, cam)
+    # and the IMU's slow block (once a second) gave the filter the part's temperature
+    assert est["counters"]["temperature_readings"] >= DURATION_S - 10, est["counters"]
     assert summary["sensors"]["imu_profile"] == "simple"
 
 

@@ -28,6 +28,11 @@ the velocity (position rows) and the acceleration (velocity rows) at that instan
 becomes observable whenever the aircraft accelerates, and stays put (with its uncertainty) in
 straight flight, where it does not matter.
 
+Temperature: the biases of a MEMS part follow its temperature by an unknown coefficient, and
+the part warms by some 20 C after switch-on; ``set_temperature`` lets the bias covariance grow
+with each measured temperature change (a random walk in temperature, not in time), so the
+estimate keeps up with a warm-up and stays tight once the part is warm.
+
 Rate independence: the nominal state is integrated sample by sample, at whatever rate the IMU
 runs (50 Hz to 1 kHz), composing each sample's rotation exactly (the coning motion between
 samples is captured by the composition) and rotating each sample's velocity increment with
@@ -84,6 +89,12 @@ IDX_GPS_LAG = 15
 FIXED_LAG_VAR = 1e-12
 """Variance held by a delay that is not estimated: uncoupled from every other state, so the
 covariance stays positive definite and nothing ever moves it."""
+TEMP_STEP_C = 0.2
+"""Smallest IMU temperature change that counts (`Eskf.set_temperature`): above the slow block's
+0.01 C resolution and a sensor's noise, below what moves a bias noticeably."""
+TEMP_SPAN_C = 20.0
+"""Temperature span of a typical warm-up after switch-on (20 -> 40 C in an enclosure), over
+which the temperature-driven bias walk spreads as much as the coefficient says."""
 
 
 @dataclass(frozen=True)
@@ -171,6 +182,10 @@ class Eskf:
             fixed (not estimated).
         gps_lag_rw_s_rt_s: random walk of the delay (receivers change it with their load).
         max_gps_lag_s: the estimate is clipped to 0..this.
+        gyro_bias_temp_rad_s_per_c, accel_bias_temp_m_s2_per_c: 1-sigma of the sensor's bias
+            change per degree C (its temperature coefficient, unknown per part); with
+            ``set_temperature`` the biases may then move that much faster while the part's
+            temperature changes (0: no temperature term).
         cov_period_s: the covariance is propagated once per this much IMU time (samples in
             between only accumulate); the nominal state follows every sample.
         history_s: how far back state history is kept to place late measurements.
@@ -208,6 +223,8 @@ class Eskf:
         gps_lag_std_s: float = 0.0,
         gps_lag_rw_s_rt_s: float = 2e-4,
         max_gps_lag_s: float = 0.5,
+        gyro_bias_temp_rad_s_per_c: float = 0.0,
+        accel_bias_temp_m_s2_per_c: float = 0.0,
         cov_period_s: float = 0.01,
         history_s: float = 1.0,
         max_dt_s: float = 0.1,
@@ -218,7 +235,8 @@ class Eskf:
     ) -> None:
         settings = dict(locals())
         settings.pop("self")
-        may_be_zero = ("gps_lag_s", "gps_lag_std_s")
+        may_be_zero = ("gps_lag_s", "gps_lag_std_s", "gyro_bias_temp_rad_s_per_c",
+                       "accel_bias_temp_m_s2_per_c")
         for name, value in settings.items():
             if not (isinstance(value, int | float) and math.isfinite(value)
                     and (value > 0 or (value == 0 and name in may_be_zero))):
@@ -251,6 +269,10 @@ class Eskf:
         self.gps_lag_std_s = float(gps_lag_std_s)
         self.gps_lag_rw_s_rt_s = float(gps_lag_rw_s_rt_s)
         self.max_gps_lag_s = float(max_gps_lag_s)
+        self.gyro_bias_temp_rad_s_per_c = float(gyro_bias_temp_rad_s_per_c)
+        self.accel_bias_temp_m_s2_per_c = float(accel_bias_temp_m_s2_per_c)
+        self._temp_ref_c = math.nan  # temperature at the last counted change
+        self._pend_temp_c = 0.0  # counted change not yet given to the covariance
         self.cov_period_s = float(cov_period_s)
         self._lag_on = self.gps_lag_std_s > 0.0
         self.history_s = float(history_s)
@@ -373,6 +395,34 @@ class Eskf:
         self._initialised = True
         self._remember_good()
         return True
+
+    def set_temperature(self, temperature_c: float) -> None:
+        """The IMU's temperature (its slow block, about once a second).
+
+        A MEMS part's biases follow its temperature with a coefficient no datasheet pins
+        down (the MPU-6000's zero-rate output may move 20 deg/s between -40 and 85 C), so
+        while the part warms up after switch-on its gyro bias can move a degree per second
+        within minutes, far faster than a random walk tuned for a warm part allows. Each
+        change of ``TEMP_STEP_C`` or more (quantisation and sensor noise stay below it) adds
+        ``(coefficient^2) * TEMP_SPAN_C * |change|`` to the bias variances: a random walk in
+        temperature rather than in time, whose spread over a warm-up of ``TEMP_SPAN_C``
+        equals the coefficient's. A part at a steady temperature adds nothing.
+        """
+        try:
+            t = float(temperature_c)
+        except (TypeError, ValueError):
+            self.rejected_inputs += 1
+            return
+        if not math.isfinite(t) or abs(t) > 200.0:
+            self.rejected_inputs += 1
+            return
+        if not math.isfinite(self._temp_ref_c):
+            self._temp_ref_c = t
+            return
+        step = abs(t - self._temp_ref_c)
+        if step >= TEMP_STEP_C:
+            self._pend_temp_c += step
+            self._temp_ref_c = t
 
     # -- prediction ----------------------------------------------------------------------------
 
@@ -504,6 +554,15 @@ class Eskf:
         f[6:9, 9:12] = rot0 * -dt
         p = f @ self._p @ f.T
         p += self._process_noise(dt)
+        if self._pend_temp_c > 0.0:
+            scale = TEMP_SPAN_C * self._pend_temp_c
+            gyro_var = self.gyro_bias_temp_rad_s_per_c**2 * scale
+            accel_var = self.accel_bias_temp_m_s2_per_c**2 * scale
+            for i in range(9, 12):
+                p[i, i] += gyro_var
+            for i in range(12, 15):
+                p[i, i] += accel_var
+            self._pend_temp_c = 0.0
         self._p = p
         self._pend_dt = 0.0
         self._pend_dv_f = (0.0, 0.0, 0.0)

@@ -65,6 +65,7 @@ class EstimatorCore:
         self.gps_accepted = 0
         self.gps_rejected = 0
         self.horizon_used = 0
+        self.temperature_readings = 0
         self.last_imu: ImuSample | None = None
         self._last_counter: int | None = None
         self._last_t_ns: int | None = None
@@ -117,6 +118,8 @@ class EstimatorCore:
             "gyro_noise_rad_s_rt_hz": p["GYR_NSD"], "accel_noise_m_s2_rt_hz": p["ACC_NSD"],
             "gyro_bias_rw_rad_s_rt_s": p["GB_RW"], "accel_bias_rw_m_s2_rt_s": p["AB_RW"],
             "horizon_std_rad": p["HZN_STD"],
+            "gyro_bias_temp_rad_s_per_c": p.get("GB_TEMP", 0.0),
+            "accel_bias_temp_m_s2_per_c": p.get("AB_TEMP", 0.0),
             "gps_lag_s": p["GPS_LAG"], "gps_lag_std_s": p.get("GPS_LAGSD", 0.0),
             "cov_period_s": COV_PERIOD_S}
         if moving:
@@ -139,6 +142,8 @@ class EstimatorCore:
             f.gyro_bias_rw_rad_s_rt_s = self.p["GB_RW"]
             f.accel_bias_rw_m_s2_rt_s = self.p["AB_RW"]
             f.horizon_std_rad = self.p["HZN_STD"]
+            f.gyro_bias_temp_rad_s_per_c = self.p.get("GB_TEMP", 0.0)
+            f.accel_bias_temp_m_s2_per_c = self.p.get("AB_TEMP", 0.0)
             f._q_cache.clear()
 
     def initial_phase(self, samples: Sequence[ImuSample], fix: GpsFix | None) -> bool:
@@ -264,6 +269,12 @@ class EstimatorCore:
         else:
             self.gps_rejected += 1
         return res, latency
+
+    def set_temperature(self, temperature_c: float) -> None:
+        """The IMU's temperature from its slow block: lets the biases follow a warm-up."""
+        if self.filter is not None:
+            self.filter.set_temperature(temperature_c)
+            self.temperature_readings += 1
 
     def fuse_horizon(self, h: HorizonMeasurement) -> bool:
         """Roll and pitch from the horizon, weighted by its quality; False when not used."""

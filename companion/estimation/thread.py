@@ -52,6 +52,7 @@ class EstimatorThread(ManagedThread):
         self._std_index = np.arange(9)
         self._gps_seen = 0
         self._hzn_seen = 0
+        self._temp_seen = 0
         self.faults_reported = 0
 
     @classmethod
@@ -69,6 +70,13 @@ class EstimatorThread(ManagedThread):
                         "up: about 1 deg/s over its first minutes)."),
             float_param(f"{p}_AB_RW", 1e-3, 1e-7, 0.1, "m/s^2/rts",
                         "Accelerometer bias random walk."),
+            float_param(f"{p}_GB_TEMP", 5e-4, 0.0, 0.01, "rad/s/degC",
+                        "Gyro bias change per degree of IMU temperature, 1-sigma (a typical "
+                        "consumer MEMS part: 0.03 deg/s/C): while the part warms up the bias "
+                        "may move this much faster. 0 ignores the temperature."),
+            float_param(f"{p}_AB_TEMP", 1.5e-3, 0.0, 0.1, "m/s^2/degC",
+                        "Accelerometer bias change per degree of IMU temperature, 1-sigma "
+                        "(0.15 mg/C). 0 ignores the temperature."),
             float_param(f"{p}_GPS_HSTD", 1.0, 0.05, 100.0, "m",
                         "GPS horizontal position 1-sigma per unit HDOP."),
             float_param(f"{p}_GPS_VSTD", 2.0, 0.05, 100.0, "m",
@@ -133,6 +141,7 @@ class EstimatorThread(ManagedThread):
             return False
         self.core = core
         self._gps_seen = state.gps.version
+        self._temp_seen = -1  # the last slow block's temperature counts as new
         log.info("estimator initialised (moving start: %s)", core.moving_start)
         return True
 
@@ -159,6 +168,10 @@ class EstimatorThread(ManagedThread):
                     self.tlog.log(FMT_GPS, *res.innovation,
                                   res.nis if math.isfinite(res.nis) else -1.0,
                                   int(res.accepted), latency, st.gps_lag_s, st.gps_lag_std_s)
+        slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
+        if slow is not None and slow_version != self._temp_seen:
+            self._temp_seen = slow_version
+            core.set_temperature(slow.temperature_c)
         h, h_version, _ = self.ctx.state.horizon.read_versioned()
         if h is not None and h_version != self._hzn_seen:
             self._hzn_seen = h_version
@@ -174,7 +187,8 @@ class EstimatorThread(ManagedThread):
         core = self.core
         if core is not None:
             out.update(gps_accepted=core.gps_accepted, gps_rejected=core.gps_rejected,
-                       horizon_used=core.horizon_used)
+                       horizon_used=core.horizon_used,
+                       temperature_readings=core.temperature_readings)
         return out
 
     @property

@@ -106,6 +106,8 @@ GPS_EVERY = 10
 """IMU ticks per GPS epoch (10 Hz), as in the SITL world."""
 PILOT_EVERY = 2
 """IMU ticks per servo-board frame (50 Hz): how often the pilot moves the sticks."""
+TEMPERATURE_EVERY = 100
+"""IMU ticks between temperature readings (the IMU's slow block comes once a second)."""
 CAMERA_LATENCY_S = 0.1
 """Frame time to a horizon fix reaching the estimator: detection on the ground and both links
 (assumed; see docs/horizon.md)."""
@@ -570,6 +572,9 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
         c0 = cpu()
         t0 = perf()
         try:
+            if k % TEMPERATURE_EVERY == 0 and len(rec.imu_temperature_c) > k:
+                # the slow block's temperature, once a second at its 0.01 C resolution
+                est.set_temperature(round(float(rec.imu_temperature_c[k]), 2))
             running = est.cycle(samples, fix, hzn)
             t1 = perf()
             f = est.filter
