@@ -21,7 +21,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print("companion sim: the flight model needs JSBSim, which is not installed: "
               "pip install 'uav-companion[sim]' (docs/deploy.md)", file=sys.stderr)
         return 2
-    from companion.sim.runner import FAST_SCALE, SimError, SimOptions, run_fleet, run_sim
+    from companion.sim.runner import (
+        CAMERA_NEEDS_LEGACY,
+        FAST_SCALE,
+        SimError,
+        SimOptions,
+        run_fleet,
+        run_sim,
+    )
     from companion.sim.scenarios import SCENARIOS
 
     if args.scenario not in SCENARIOS:
@@ -58,8 +65,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
                          mavlink_port_step=args.mavlink_port_step)
     cfg = config_from_args(args)
     if args.horizon_camera != "off" and not args.lockstep and not cfg.legacy.enabled:
-        print("companion sim: --horizon-camera sends HORIZON_ATTITUDE to the legacy command "
-              "port: the legacy protocol must be on (drop --no-legacy)", file=sys.stderr)
+        print(f"companion sim: {CAMERA_NEEDS_LEGACY}", file=sys.stderr)
         return 2
     if not args.legacy_dest and not _configured(args, "legacy.dest"):
         # a simulation stays on this machine: no broadcast onto the network

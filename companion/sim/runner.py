@@ -28,6 +28,8 @@ from companion.watchdog import RuntimeContext, ThreadManager
 log = logging.getLogger(__name__)
 
 FAST_SCALE = 5.0
+CAMERA_NEEDS_LEGACY = ("--horizon-camera sends HORIZON_ATTITUDE to the legacy command port: "
+                       "the legacy protocol must be on (drop --no-legacy)")
 READY_TIMEOUT_S = 60.0
 
 
@@ -224,8 +226,7 @@ def _camera_go(sim: SimOptions, rt: Runtime) -> dict[str, Any]:
             host, port = bridge.listen_addr[:2]
             host = "127.0.0.1" if host in ("0.0.0.0", "") else host
             return {"horizon_dest": f"{host}:{port}", "vehicle_id": rt.cfg.vehicle.id}
-    raise SimError("--horizon-camera sends HORIZON_ATTITUDE to the legacy command port: "
-                   "the legacy protocol must be on (drop --no-legacy)")
+    raise SimError(CAMERA_NEEDS_LEGACY)
 
 
 def sensor_metadata(sim: SimOptions) -> dict[str, Any]:

@@ -177,19 +177,27 @@ def _fix_code(fix_type: npt.ArrayLike) -> IntArray:
     return np.select([f >= 5, f == 4, f == 3], [3, 2, 1], 0).astype(np.int64)
 
 
+def _chain_damage(path: Path, chain: tuple[int | None, str], fmt: str, salvage: bool,
+                  recovery: str) -> tuple[int | None, str | None]:
+    """A format's own framing check (`check_*_chain`) before its library reads the file: the
+    first bad byte offset and, when salvaging, what `FlightLog.damage` says of it; a file
+    damaged from its first byte, or any damage without `salvage`, is a `LogReadError`."""
+    bad_at, what = chain
+    if bad_at is None:
+        return None, None
+    if bad_at == 0 or not salvage:
+        raise LogReadError(path, f"{fmt}: {what}", bad_at)
+    return bad_at, f"{what} at byte offset {bad_at} ({recovery})"
+
+
 def read_ulog(path: Path, *, salvage: bool = False) -> FlightLog:
     """PX4: `sensor_combined` (IMU), `vehicle_gps_position` or `sensor_gps` (GPS),
     `vehicle_attitude` and, in simulation, `vehicle_attitude_groundtruth` (references)."""
     from pyulog import ULog
     from pyulog.core import ULogException
 
-    data = path.read_bytes()
-    bad_at, what = check_ulog_chain(data)
-    damage = None
-    if bad_at is not None:
-        if bad_at == 0 or not salvage:
-            raise LogReadError(path, f"PX4 ULog: {what}", bad_at)
-        damage = f"{what} at byte offset {bad_at} (the rest skipped or resynchronised)"
+    bad_at, damage = _chain_damage(path, check_ulog_chain(path.read_bytes()), "PX4 ULog",
+                                   salvage, "the rest skipped or resynchronised")
     wanted = ["sensor_combined", "vehicle_gps_position", "sensor_gps", "vehicle_attitude",
               "vehicle_attitude_groundtruth"]
     quiet = io.StringIO()
@@ -321,14 +329,8 @@ def read_dataflash(path: Path, *, salvage: bool = False,
     logged."""
     from pymavlink import DFReader
 
-    data = path.read_bytes()
-    bad_at, what = check_dataflash_chain(data)
-    damage = None
-    if bad_at is not None:
-        if bad_at == 0 or not salvage:
-            raise LogReadError(path, f"ArduPilot DataFlash: {what}", bad_at)
-        damage = f"{what} at byte offset {bad_at} (pymavlink resynchronised)"
-    del data
+    bad_at, damage = _chain_damage(path, check_dataflash_chain(path.read_bytes()),
+                                   "ArduPilot DataFlash", salvage, "pymavlink resynchronised")
     types = ["IMU", "IMU2", "IMU3", "GPS", "ATT", "AHR2", "XKF1", "NKF1"]
     rows: dict[str, list[tuple[Any, ...]]] = {t: [] for t in types}
     quiet = io.StringIO()
