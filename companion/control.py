@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from companion.core.mathutil import clamp
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import ControlOutput, EstimatorState
 from companion.drivers.servo_protocol import CH_THROTTLE, pilot_switch_auto, us_to_throttle
@@ -31,10 +32,6 @@ FMT_CONTROL = 1
 
 def wrap_pi(angle_rad: float) -> float:
     return (angle_rad + math.pi) % (2 * math.pi) - math.pi
-
-
-def clamp(x: float, lo: float, hi: float) -> float:
-    return lo if x < lo else hi if x > hi else x
 
 
 @dataclass

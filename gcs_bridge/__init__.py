@@ -3,10 +3,27 @@ as a fixed-wing autopilot speaking MAVLink 2. See docs/ground-stations.md."""
 
 from __future__ import annotations
 
-from gcs_bridge.bridge import MavlinkBridge
-from gcs_bridge.dialect import Identity
-from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
-from gcs_bridge.signing import KeyFileError, new_key_file, read_key_file
+from typing import TYPE_CHECKING
+
+from companion.core.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from gcs_bridge.bridge import MavlinkBridge
+    from gcs_bridge.dialect import Identity
+    from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
+    from gcs_bridge.signing import KeyFileError, new_key_file, read_key_file
+
+_EXPORTS = {
+    "MavlinkBridge": "gcs_bridge.bridge",
+    "Identity": "gcs_bridge.dialect",
+    "DEFAULT_ENDPOINT": "gcs_bridge.endpoints",
+    "Endpoint": "gcs_bridge.endpoints",
+    "EndpointError": "gcs_bridge.endpoints",
+    "parse_endpoint": "gcs_bridge.endpoints",
+    "KeyFileError": "gcs_bridge.signing",
+    "new_key_file": "gcs_bridge.signing",
+    "read_key_file": "gcs_bridge.signing",
+}
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -19,3 +36,5 @@ __all__ = [
     "parse_endpoint",
     "read_key_file",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

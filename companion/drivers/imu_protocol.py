@@ -15,6 +15,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
+from companion.core.mathutil import clamp
+
 __all__ = [
     "ACCEL_LSB_M_S2",
     "CYCLE_FRAMES",
@@ -126,7 +128,7 @@ def _quantise(value: float, lsb: float, bounds: tuple[int, int], what: str) -> i
     if not math.isfinite(value):
         raise ValueError(f"{what} must be finite, got {value!r}")
     raw = round(value / lsb)
-    return min(max(raw, bounds[0]), bounds[1])
+    return clamp(raw, bounds[0], bounds[1])
 
 
 def _triple(values: Sequence[float], what: str) -> tuple[float, float, float]:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from functools import reduce
 from operator import xor
 
+from companion.core.mathutil import clamp
 from companion.drivers.imu_protocol import DecoderCounters, SyncFrameDecoder
 
 __all__ = [
@@ -117,22 +118,22 @@ def pilot_switch_auto(channels_us: Sequence[int]) -> bool:
 # have elevator +1 nose down and rudder +1 nose left, hence the signs below.
 def stick_to_us(x: float) -> int:
     """A normalised stick (-1..+1, clipped) as a pulse width, 1500 us centred."""
-    return int(round(CENTRE_US + HALF_TRAVEL_US * min(max(x, -1.0), 1.0)))
+    return int(round(CENTRE_US + HALF_TRAVEL_US * clamp(x, -1.0, 1.0)))
 
 
 def us_to_stick(us: float) -> float:
     """A pulse width (clipped to 1000..2000 us) as a normalised stick, -1..+1."""
-    return (min(max(float(us), COMMAND_MIN_US), COMMAND_MAX_US) - CENTRE_US) / HALF_TRAVEL_US
+    return (clamp(float(us), COMMAND_MIN_US, COMMAND_MAX_US) - CENTRE_US) / HALF_TRAVEL_US
 
 
 def throttle_to_us(t: float) -> int:
     """Throttle 0..1 (clipped) as a pulse width, 1000..2000 us."""
-    return int(round(COMMAND_MIN_US + (COMMAND_MAX_US - COMMAND_MIN_US) * min(max(t, 0.0), 1.0)))
+    return int(round(COMMAND_MIN_US + (COMMAND_MAX_US - COMMAND_MIN_US) * clamp(t, 0.0, 1.0)))
 
 
 def us_to_throttle(us: float) -> float:
     """A throttle pulse width (clipped to 1000..2000 us) as 0..1."""
-    clipped = min(max(float(us), COMMAND_MIN_US), COMMAND_MAX_US)
+    clipped = clamp(float(us), COMMAND_MIN_US, COMMAND_MAX_US)
     return (clipped - COMMAND_MIN_US) / (COMMAND_MAX_US - COMMAND_MIN_US)
 
 

@@ -5,14 +5,15 @@ NED navigation frame, body x forward / y right / z down, quaternions (w, x, y, z
 body vectors into NED, specific force in m/s^2 (about (0, 0, -g) level and still), rates in
 rad/s. See docs/estimation.md.
 
-Names are imported lazily: the ESKF pulls in scipy and filterpy, which costs about a second
-at start-up that tools using only the attitude filter should not pay.
+Names are imported lazily, so a tool that lists parameters or reads logs does not load the
+filters it never runs.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from companion.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from companion.estimation.attitude import AttitudeFilter, estimate_attitude
@@ -37,8 +38,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'companion.estimation' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

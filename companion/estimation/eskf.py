@@ -42,9 +42,11 @@ cost does not grow with the IMU rate; it is brought up to date before every meas
 
 Why not filterpy's ``KalmanFilter``: its state is additive (``x + K y``) and its transition
 acts on the state itself, while here the transition acts on an error state and the correction
-is injected multiplicatively into a quaternion, then the error is reset to zero. filterpy
-provides the position/velocity process noise block (``Q_continuous_white_noise``) and the
-chi-square and NEES helpers used in the tests.
+is injected multiplicatively into a quaternion, then the error is reset to zero. The
+position/velocity process noise block and the chi-square gates are closed forms
+(:mod:`companion.estimation.noise`, checked against filterpy's ``Q_continuous_white_noise`` and
+scipy's ``chi2``, which are not imported in flight: half a second of start-up); filterpy's NEES
+helper is used in the tests.
 
 Size: the 15-state filter's prediction, updates (GPS, horizon, zero velocity), delayed-
 measurement history and health checks are one piece of mathematics.
@@ -57,12 +59,12 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
-from filterpy.common import Q_continuous_white_noise
 from numpy.typing import ArrayLike
-from scipy.stats import chi2
 
+from companion.estimation.noise import chi2_ppf_even, white_accel_q
 from companion.estimation.quat import (
     GRAVITY_M_S2,
     FloatArray,
@@ -116,6 +118,24 @@ class UpdateResult:
 class EstimatorFault:
     time_s: float
     reason: str
+
+
+class FlightView(NamedTuple):
+    """The published subset of the state as plain floats (see :meth:`Eskf.flight_view`)."""
+
+    quaternion: tuple[float, float, float, float]
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    pos_ned_m: tuple[float, ...]
+    vel_ned_m_s: tuple[float, ...]
+    gyro_bias_rad_s: tuple[float, float, float]
+    accel_bias_m_s2: tuple[float, float, float]
+    cov_diag: tuple[float, ...]
+    last_gps_innovation: tuple[float, ...]
+    aligned: bool
+    faults: int
+    last_fault_reason: str
 
 
 @dataclass(frozen=True)
@@ -258,9 +278,9 @@ class Eskf:
         self.init_accel_bias_std_m_s2 = float(init_accel_bias_std_m_s2)
         self.max_gyro_bias_rad_s = float(max_gyro_bias_rad_s)
         self.max_accel_bias_m_s2 = float(max_accel_bias_m_s2)
-        self.gps_gate = float(chi2.ppf(gps_gate_prob, 6))
+        self.gps_gate = chi2_ppf_even(gps_gate_prob, 6)
         self.max_gps_rejections = int(max_gps_rejections)
-        self.attitude_gate = float(chi2.ppf(attitude_gate_prob, 2))
+        self.attitude_gate = chi2_ppf_even(attitude_gate_prob, 2)
         self.max_attitude_rejections = int(max_attitude_rejections)
         self.horizon_std_rad = float(horizon_std_rad)
         self.yaw_align_min_speed_m_s = float(yaw_align_min_speed_m_s)
@@ -432,10 +452,7 @@ class Eskf:
         if q is None:
             q = np.zeros((N_STATES, N_STATES))
             # position/velocity driven by white accelerometer noise, exact discretisation
-            q[0:6, 0:6] = Q_continuous_white_noise(
-                dim=2, dt=key, spectral_density=self.accel_noise_m_s2_rt_hz**2,
-                block_size=3, order_by_dim=False,
-            )
+            q[0:6, 0:6] = white_accel_q(key, self.accel_noise_m_s2_rt_hz**2)
             for i in range(6, 9):
                 q[i, i] = self.gyro_noise_rad_s_rt_hz**2 * key
             for i in range(9, 12):
@@ -586,9 +603,7 @@ class Eskf:
         f[0, 3] = f[1, 4] = f[2, 5] = step
         q = self._process_noise(step).copy()
         # unknown manoeuvres during the gap, about 1 m/s^2 1-sigma on each axis
-        q[0:6, 0:6] += Q_continuous_white_noise(
-            dim=2, dt=step, spectral_density=1.0, block_size=3, order_by_dim=False
-        )
+        q[0:6, 0:6] += white_accel_q(step, 1.0)
         p = self._p
         for _ in range(min(steps, 1000)):
             p = f @ p @ f.T + q
@@ -1031,6 +1046,24 @@ class Eskf:
             gps_lag_s=self._lag,
             gps_lag_std_s=math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0)),
         )
+
+    def flight_view(self) -> FlightView:
+        """What the flight thread publishes at every IMU sample, as Python floats.
+
+        :meth:`state` copies every array into a frozen snapshot (about 10 us); the thread turns
+        those arrays straight back into tuples, at 100 Hz or more. This reads the same values
+        without the copies; ``cov_diag`` follows :meth:`state`'s convention for the heading.
+        """
+        w, x, y, z = q = self._q
+        roll, pitch, yaw = quat_to_euler_f(w, x, y, z)
+        diag = self._p.diagonal().tolist()
+        if not self._yaw_aligned:
+            diag[IDX_YAW] = math.pi**2 / 3.0
+        return FlightView(q, roll, pitch, yaw, tuple(self._pos.tolist()),
+                          tuple(self._vel.tolist()), self._bg_f, self._ba_f, tuple(diag),
+                          tuple(self._last_gps_innovation.tolist()),
+                          self._initialised and self._yaw_aligned, self.faults,
+                          self.last_fault_reason)
 
     @property
     def covariance(self) -> FloatArray:

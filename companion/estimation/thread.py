@@ -25,7 +25,7 @@ from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
 
 if TYPE_CHECKING:
-    # the filter (numpy, scipy, filterpy) loads when the thread starts, not when its
+    # the filter loads when the thread starts, not when its
     # parameters are listed (`companion params`, the docs)
     from companion.estimation.eskf import Eskf
     from companion.estimation.fusion import EstimatorCore
@@ -49,7 +49,7 @@ class EstimatorThread(ManagedThread):
     def __init__(self, *, task: Task = VEHICLE_TASKS["estimator"]) -> None:
         super().__init__(task)
         self.core: EstimatorCore | None = None
-        self._std_index = np.arange(9)
+        self._std_index: list[int] = list(range(9))
         self._gps_seen = 0
         self._hzn_seen = 0
         self._temp_seen = 0
@@ -127,7 +127,8 @@ class EstimatorThread(ManagedThread):
         from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL
         from companion.estimation.fusion import EstimatorCore
 
-        self._std_index = np.r_[IDX_POS, IDX_VEL, IDX_ATT]  # the logged standard deviations
+        # the logged standard deviations
+        self._std_index = [int(i) for i in np.r_[IDX_POS, IDX_VEL, IDX_ATT]]
         core = EstimatorCore(self._params(), self.ctx.home_lla)
         state.imu_stream.drain()
         while not self.stop_requested:
@@ -200,38 +201,38 @@ class EstimatorThread(ManagedThread):
         return self.core.horizon_used if self.core is not None else 0
 
     def _publish(self, f: Eskf) -> None:
-        st = f.state()
-        if st.faults != self.faults_reported:
-            log.warning("estimator fault %d: %s (filter reset)", st.faults, st.last_fault_reason)
-            self.faults_reported = st.faults
+        v = f.flight_view()
+        if v.faults != self.faults_reported:
+            log.warning("estimator fault %d: %s (filter reset)", v.faults, v.last_fault_reason)
+            self.faults_reported = v.faults
         assert self.core is not None
         imu = self.core.last_imu
         t_ns = imu.t_ns if imu is not None else self.ctx.clock.realtime_ns()
         rates = imu.rates_rad_s if imu is not None else (0.0, 0.0, 0.0)
-        # tolist(): Python floats in one call each (this runs at the IMU rate)
-        bias = st.gyro_bias_rad_s.tolist()
+        bias = v.gyro_bias_rad_s
         home = self.core.frame
         out = EstimatorState(
             t_ns=t_ns,
-            quat_wxyz=tuple(st.quaternion.tolist()),  # type: ignore[arg-type]
-            roll_rad=st.roll_rad, pitch_rad=st.pitch_rad, yaw_rad=st.yaw_rad,
-            pos_ned_m=tuple(st.pos_ned_m.tolist()),  # type: ignore[arg-type]
-            vel_ned_m_s=tuple(st.vel_ned_m_s.tolist()),  # type: ignore[arg-type]
-            gyro_bias_rad_s=tuple(bias),  # type: ignore[arg-type]
-            accel_bias_m_s2=tuple(st.accel_bias_m_s2.tolist()),  # type: ignore[arg-type]
+            quat_wxyz=v.quaternion,
+            roll_rad=v.roll_rad, pitch_rad=v.pitch_rad, yaw_rad=v.yaw_rad,
+            pos_ned_m=v.pos_ned_m,  # type: ignore[arg-type]
+            vel_ned_m_s=v.vel_ned_m_s,  # type: ignore[arg-type]
+            gyro_bias_rad_s=bias,
+            accel_bias_m_s2=v.accel_bias_m_s2,
             origin_lat_deg=home.lat0_deg if home else None,
             origin_lon_deg=home.lon0_deg if home else None,
             origin_alt_m=home.alt0_m if home else None,
-            cov_diag=tuple(st.cov_diag.tolist()),
-            innovations=tuple(st.last_gps_innovation.tolist()),
+            cov_diag=v.cov_diag,
+            innovations=v.last_gps_innovation,
             rates_rad_s=(rates[0] - bias[0], rates[1] - bias[1], rates[2] - bias[2]),
-            aligned=st.initialised and st.yaw_aligned,
-            faults=st.faults,
+            aligned=v.aligned,
+            faults=v.faults,
         )
         self.ctx.state.estimator.write(out)
         if self.tlog is not None:
-            std = np.sqrt(np.maximum(st.cov_diag, 0.0))
-            self.tlog.log(FMT_STATE, st.roll_rad, st.pitch_rad, st.yaw_rad, *out.pos_ned_m,
-                          *out.vel_ned_m_s, *out.gyro_bias_rad_s, *out.accel_bias_m_s2,
-                          *std[self._std_index].tolist(), st.faults,
-                          int(out.aligned), t_ns=t_ns)
+            diag = v.cov_diag
+            sqrt = math.sqrt
+            self.tlog.log(FMT_STATE, v.roll_rad, v.pitch_rad, v.yaw_rad, *out.pos_ned_m,
+                          *out.vel_ned_m_s, *bias, *v.accel_bias_m_s2,
+                          *[sqrt(diag[i]) if diag[i] > 0.0 else 0.0 for i in self._std_index],
+                          v.faults, int(v.aligned), t_ns=t_ns)

@@ -5,18 +5,41 @@ The format, byte by byte, and the tools are documented in docs/logs.md.
 
 from __future__ import annotations
 
-from companion.logs.convert import convert_file
-from companion.logs.formats import FormatError, FormatSpec, parse_format
-from companion.logs.reader import (
-    Damage,
-    LogFile,
-    LogFormatError,
-    Marker,
-    Stream,
-    read_log,
-    read_log_bytes,
-)
-from companion.logs.writer import LogService, RawLog, ThreadLog, write_run_json
+from typing import TYPE_CHECKING
+
+from companion.core.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from companion.logs.convert import convert_file
+    from companion.logs.formats import FormatError, FormatSpec, parse_format
+    from companion.logs.reader import (
+        Damage,
+        LogFile,
+        LogFormatError,
+        Marker,
+        Stream,
+        read_log,
+        read_log_bytes,
+    )
+    from companion.logs.writer import LogService, RawLog, ThreadLog, write_run_json
+
+_EXPORTS = {
+    "convert_file": "companion.logs.convert",
+    "FormatError": "companion.logs.formats",
+    "FormatSpec": "companion.logs.formats",
+    "parse_format": "companion.logs.formats",
+    "Damage": "companion.logs.reader",
+    "LogFile": "companion.logs.reader",
+    "LogFormatError": "companion.logs.reader",
+    "Marker": "companion.logs.reader",
+    "Stream": "companion.logs.reader",
+    "read_log": "companion.logs.reader",
+    "read_log_bytes": "companion.logs.reader",
+    "LogService": "companion.logs.writer",
+    "RawLog": "companion.logs.writer",
+    "ThreadLog": "companion.logs.writer",
+    "write_run_json": "companion.logs.writer",
+}
 
 __all__ = [
     "Damage",
@@ -35,3 +58,5 @@ __all__ = [
     "read_log_bytes",
     "write_run_json",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from companion.core.mathutil import clamp
 from companion.drivers.gps_protocol import DEFAULT_SENTENCES, TALKERS, GpsSolution, encode_epoch
 from companion.drivers.imu_protocol import (
     CYCLE_FRAMES,
@@ -547,7 +548,7 @@ class ServoBoardSim:
         out = list(self.pilot_us)
         for index, value in enumerate(self.last_command.channels_us):
             if value and index != CH_MODE:
-                out[index] = min(max(value, COMMAND_MIN_US), COMMAND_MAX_US)
+                out[index] = clamp(value, COMMAND_MIN_US, COMMAND_MAX_US)
         return tuple(out)
 
 

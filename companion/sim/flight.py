@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import jsbsim
 
 from companion.core.geo import NedFrame
+from companion.core.mathutil import clamp
 
 log = logging.getLogger(__name__)
 
@@ -577,10 +578,10 @@ class FlightModel:
 
         Values are clipped to -1..1 (throttle 0..1), as a servo's travel would clip them.
         """
-        a = min(max(_finite("aileron", aileron), -1.0), 1.0)
-        e = min(max(_finite("elevator", elevator), -1.0), 1.0)
-        r = min(max(_finite("rudder", rudder), -1.0), 1.0)
-        t = min(max(_finite("throttle", throttle), 0.0), 1.0)
+        a = clamp(_finite("aileron", aileron), -1.0, 1.0)
+        e = clamp(_finite("elevator", elevator), -1.0, 1.0)
+        r = clamp(_finite("rudder", rudder), -1.0, 1.0)
+        t = clamp(_finite("throttle", throttle), 0.0, 1.0)
         self._write_controls(a, e, r, t)
 
     def _write_controls(self, a: float, e: float, r: float, t: float) -> None:

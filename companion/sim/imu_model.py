@@ -32,6 +32,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from companion.core.mathutil import clamp
+
 if TYPE_CHECKING:
     from companion.sim.devices import ImuSimConfig
 
@@ -291,8 +293,8 @@ class ImuErrorModel:
             gr = cfg.gyro_range_rad_s
             ar = cfg.accel_range_m_s2
             for i in range(3):
-                out[i] = min(max(out[i], -gr), gr)
-                out[i + 3] = min(max(out[i + 3], -ar), ar)
+                out[i] = clamp(out[i], -gr, gr)
+                out[i + 3] = clamp(out[i + 3], -ar, ar)
         lsb = cfg.gyro_lsb_rad_s
         if lsb:
             for i in range(3):
