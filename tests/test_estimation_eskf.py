@@ -252,7 +252,7 @@ def test_internal_divergence_is_detected_and_reset(turn_flight: tuple[Trajectory
         f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], 0.01)
     assert f.update_gps(gps.pos_ned_m[20], gps.vel_ned_m_s[20], gps.pos_std_m, gps.vel_std_m_s, 0.0).accepted
     # a numerical blow-up inside the filter (what the 2003 estimator suffered)
-    f._vel[0] = np.nan  # noqa: SLF001 - fault injection
+    f._vel_f = (np.nan, *f._vel_f[1:])  # noqa: SLF001 - fault injection
     f.predict(imu.gyro_rad_s[200], imu.accel_m_s2[200], 0.01)
     s = f.state()
     assert s.faults == 1 and "non-finite" in s.last_fault_reason

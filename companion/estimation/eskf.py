@@ -320,8 +320,8 @@ class Eskf:
         self._yaw_aligned = False
         self._t = 0.0
         self._q = (1.0, 0.0, 0.0, 0.0)
-        self._pos = np.zeros(3)
-        self._vel = np.zeros(3)
+        self._pos_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._vel_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._set_biases(np.zeros(3), np.zeros(3))
         self._p = np.eye(N_STATES)
         self._lag = self.gps_lag_s
@@ -331,7 +331,8 @@ class Eskf:
         self._pend_dv_f = (0.0, 0.0, 0.0)
         self._pend_q: tuple[float, ...] = self._q
         # (time, position, velocity, attitude) after each sample
-        self._history: deque[tuple[float, FloatArray, FloatArray, tuple[float, ...]]] = deque(
+        self._history: deque[tuple[float, tuple[float, float, float], tuple[float, float, float],
+                                   tuple[float, ...]]] = deque(
             maxlen=max(8, int(self.history_s * 1000))
         )
         self._predicts = 0
@@ -531,9 +532,13 @@ class Eskf:
         w, x, y, z = quat_multiply_f(*q, *quat_from_rotvec_f(wx, wy, wz))
         n = math.sqrt(w * w + x * x + y * y + z * z)
         self._q = (w / n, x / n, y / n, z / n)
-        acc = np.array((fx, fy, fz + self.gravity_m_s2))
-        self._pos += self._vel * dt + (0.5 * dt * dt) * acc
-        self._vel += acc * dt
+        fz_g = fz + self.gravity_m_s2
+        half_dt2 = 0.5 * dt * dt
+        p0, p1, p2 = self._pos_f
+        v0, v1, v2 = self._vel_f
+        self._pos_f = (p0 + v0 * dt + half_dt2 * fx, p1 + v1 * dt + half_dt2 * fy,
+                       p2 + v2 * dt + half_dt2 * fz_g)
+        self._vel_f = (v0 + fx * dt, v1 + fy * dt, v2 + fz_g * dt)
         self._f_nav_f = (fx, fy, fz)
         self._t += dt
         lp = self._accel_lp_f
@@ -542,7 +547,7 @@ class Eskf:
         self._pend_dt += dt
         pd = self._pend_dv_f
         self._pend_dv_f = (pd[0] + fx * dt, pd[1] + fy * dt, pd[2] + fz * dt)
-        self._history.append((self._t, self._pos.copy(), self._vel.copy(), self._q))
+        self._history.append((self._t, self._pos_f, self._vel_f, self._q))
         self._predicts += 1
         if self._pend_dt >= self.cov_period_s - 1e-9:
             self._propagate_covariance()
@@ -661,10 +666,8 @@ class Eskf:
             return UpdateResult(True, "yaw_aligned")
 
         y = np.concatenate((z_pos - pos_then, z_vel - vel_then))
-        h = np.zeros((6, N_STATES))
-        h[0:3, 0:3] = np.eye(3)
-        h[0:3, 3:6] = np.eye(3) * -latency
-        h[3:6, 3:6] = np.eye(3)
+        h = _H_GPS.copy()
+        h[0, 3] = h[1, 4] = h[2, 5] = -latency
         if latency > 0.0:
             fx, fy, fz = (c * latency for c in self._f_nav_f)
             h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
@@ -861,8 +864,8 @@ class Eskf:
         # at the IMU rate, where four isfinite().all() calls cost more than the check is worth)
         state_ok = (
             all(math.isfinite(c) for c in self._q)
-            and math.isfinite(float(self._pos.sum() + self._vel.sum()
-                                    + self._bg.sum() + self._ba.sum()))
+            and math.isfinite(sum(self._pos_f) + sum(self._vel_f) + sum(self._bg_f)
+                              + sum(self._ba_f))
         )
         if not state_ok:
             self._fault("non-finite state")
@@ -939,6 +942,27 @@ class Eskf:
             if i != IDX_YAW or self._yaw_aligned:
                 p[i, i] = var
 
+    # Position and velocity live as float triples: the per-sample path updates them with
+    # scalar arithmetic (numpy's per-call overhead exceeded the arithmetic at 100 Hz-1 kHz);
+    # the measurement paths read and write them as arrays through these properties.
+    @property
+    def _pos(self) -> FloatArray:
+        return np.array(self._pos_f)
+
+    @_pos.setter
+    def _pos(self, value: ArrayLike) -> None:
+        v = np.asarray(value, dtype=float)
+        self._pos_f = (float(v[0]), float(v[1]), float(v[2]))
+
+    @property
+    def _vel(self) -> FloatArray:
+        return np.array(self._vel_f)
+
+    @_vel.setter
+    def _vel(self, value: ArrayLike) -> None:
+        v = np.asarray(value, dtype=float)
+        self._vel_f = (float(v[0]), float(v[1]), float(v[2]))
+
     def _set_biases(self, bg: FloatArray, ba: FloatArray) -> None:
         """Biases as arrays (updates, outputs) and as floats (the per-sample path)."""
         self._bg, self._ba = bg, ba
@@ -946,7 +970,7 @@ class Eskf:
         self._ba_f = (float(ba[0]), float(ba[1]), float(ba[2]))
 
     def _remember_good(self) -> None:
-        self._last_good = (self._q, self._pos.copy(), self._vel.copy())
+        self._last_good = (self._q, self._pos, self._vel)
 
     def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
         """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
@@ -956,11 +980,12 @@ class Eskf:
         for entry in reversed(self._history):
             if entry[0] <= t_s:
                 if newer is None:
-                    return entry[1].copy(), entry[2].copy(), entry[3]
+                    return np.array(entry[1]), np.array(entry[2]), entry[3]
                 t0, t1 = entry[0], newer[0]
                 a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
-                pos = entry[1] + a * (newer[1] - entry[1])
-                vel = entry[2] + a * (newer[2] - entry[2])
+                pos0, vel0 = np.array(entry[1]), np.array(entry[2])
+                pos = pos0 + a * (np.array(newer[1]) - pos0)
+                vel = vel0 + a * (np.array(newer[2]) - vel0)
                 return pos, vel, (newer[3] if a >= 0.5 else entry[3])
             newer = entry
         return None
@@ -1059,8 +1084,8 @@ class Eskf:
         diag = self._p.diagonal().tolist()
         if not self._yaw_aligned:
             diag[IDX_YAW] = math.pi**2 / 3.0
-        return FlightView(q, roll, pitch, yaw, tuple(self._pos.tolist()),
-                          tuple(self._vel.tolist()), self._bg_f, self._ba_f, tuple(diag),
+        return FlightView(q, roll, pitch, yaw, self._pos_f, self._vel_f, self._bg_f, self._ba_f,
+                          tuple(diag),
                           tuple(self._last_gps_innovation.tolist()),
                           self._initialised and self._yaw_aligned, self.faults,
                           self.last_fault_reason)
@@ -1069,6 +1094,13 @@ class Eskf:
     def covariance(self) -> FloatArray:
         """The full error-state covariance, ``N_STATES`` square (a copy)."""
         return self._p.copy()
+
+
+_H_GPS = np.zeros((6, N_STATES))
+_H_GPS[0:3, 0:3] = np.eye(3)
+_H_GPS[3:6, 3:6] = np.eye(3)
+_H_GPS.flags.writeable = False
+"""The GPS measurement matrix's constant part (position and velocity observed directly)."""
 
 
 def _vec3(value: ArrayLike) -> FloatArray:

@@ -52,7 +52,7 @@ from companion.sim.devices import (
 )
 from companion.sim.flight import FlightModel, FlightModelError, TruthState
 from companion.sim.profiles import GPS_PROFILES, IMU_PROFILES, TURBULENCE, resolve_sensors
-from companion.sim.scenarios import Pilot, surfaces_from_channels
+from companion.sim.scenarios import Pilot, Surfaces, surfaces_from_channels
 
 if TYPE_CHECKING:
     from companion.sim.camera import CameraResult, WorldCamera
@@ -218,6 +218,8 @@ class World:
         self.start_utc_s = 12 * 3600.0
         self.stop_reason = "stopped"
         self._truth: TruthState | None = None
+        self._effective_seen: tuple[int, ...] | None = None
+        self._surfaces: Surfaces | None = None
         self.camera: WorldCamera | None = None
         self._camera_stats: dict[str, Any] | None = None
 
@@ -418,7 +420,12 @@ class World:
         with self._board_lock:
             effective = self.board.effective_channels_us(self.t_s)
             auto = self.board.auto_active(self.t_s)
-        surfaces = surfaces_from_channels(effective)
+        if effective != self._effective_seen:
+            # the servos' pulse widths change at the board's 50 Hz, not every tick
+            self._effective_seen = effective
+            self._surfaces = surfaces_from_channels(effective)
+        surfaces = self._surfaces
+        assert surfaces is not None
         model.set_controls(*surfaces)
         model.step(IMU_DT_S)
         truth = self._truth = model.truth()  # also the next tick's state before its step
