@@ -14,6 +14,7 @@ import math
 import struct
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,19 +44,23 @@ DF_MESSAGES = {  # name: (type id, format, columns), as ArduPilot 4.x logs them
 }
 
 
+IMU_WITH_T = (1, "QBffffffIIf", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T")
+"""ArduPilot 4.x's IMU message as far as its temperature (error counts, then T in C)."""
+
+
 def _df_struct(fmt: str) -> struct.Struct:
     return struct.Struct("<" + "".join(DF_STRUCT[c] for c in fmt))
 
 
-def df_fmt(name: str) -> bytes:
-    type_id, fmt, columns = DF_MESSAGES[name]
+def df_fmt(name: str, spec: tuple[int, str, str] | None = None) -> bytes:
+    type_id, fmt, columns = spec or DF_MESSAGES[name]
     length = 3 + _df_struct(fmt).size
     return b"\xa3\x95\x80" + _df_struct("BBnNZ").pack(type_id, length, name.encode(),
                                                       fmt.encode(), columns.encode())
 
 
-def df_msg(name: str, *values: float) -> bytes:
-    type_id, fmt, _ = DF_MESSAGES[name]
+def df_msg(name: str, *values: float, spec: tuple[int, str, str] | None = None) -> bytes:
+    type_id, fmt, _ = spec or DF_MESSAGES[name]
     packed = []
     for c, v in zip(fmt, values, strict=True):
         if c in DF_SCALE:
@@ -98,16 +103,24 @@ def flight_rows(rec: SitlRecording, imu_rate_hz: float = 100.0, gps: bool = True
     return Rows(imu, gps_rows, att)
 
 
-def write_dataflash(path: Path, rows: Rows, *, imu_instances: int = 1) -> Path:
-    """Write `rows` as a DataFlash log, in time order, and check that DFReader reads it."""
+def write_dataflash(path: Path, rows: Rows, *, imu_instances: int = 1,
+                    imu_temperature_c: Callable[[float], float] | None = None) -> Path:
+    """Write `rows` as a DataFlash log, in time order, and check that DFReader reads it.
+
+    ``imu_temperature_c(t_s)``: log the IMU's temperature (field T), as ArduPilot 4.x does;
+    None writes the older IMU message without it."""
     from pymavlink import DFReader
 
-    out = [df_fmt(n) for n in DF_MESSAGES]
+    imu_spec = IMU_WITH_T if imu_temperature_c is not None else None
+    out = [df_fmt(n, imu_spec if n == "IMU" else None) for n in DF_MESSAGES]
     events: list[tuple[int, int, bytes]] = []
     for t, v in rows.imu:
         for inst in range(imu_instances):
             bias = 0.01 * inst  # a second IMU with a gyro bias, to be told apart
-            events.append((t, 0, df_msg("IMU", t, inst, v[0] + bias, v[1], v[2], *v[3:6])))
+            values = [t, inst, v[0] + bias, v[1], v[2], *v[3:6]]
+            if imu_temperature_c is not None:
+                values += [0, 0, imu_temperature_c(t / 1e6)]
+            events.append((t, 0, df_msg("IMU", *values, spec=imu_spec)))
     for t, v in rows.gps:
         events.append((t, 1, df_msg("GPS", t, 0, *v)))
     for t, (r, p, y) in rows.att:
@@ -288,6 +301,32 @@ def test_dataflash_with_gps_runs_the_eskf_against_truth(
     lg = read_log(tmp_path / "estimate.bin")
     assert len(lg.data(1)) == len(res.estimate.t_us) and "ATT_roll_rad" in lg.data(2).dtype.names
     json.dumps(summary_dict(res, {}), allow_nan=False)
+
+
+def test_dataflash_imu_temperature_reaches_the_filter(flight: SitlRecording,
+                                                      tmp_path: Path) -> None:
+    t_start = flight.t_s[0]
+
+    def warm(t_s: float) -> float:  # a part warming 20 -> 40 C over the flight
+        return 20.0 + 20.0 * (1.0 - math.exp(-(t_s - t_start) / 60.0))
+
+    path = write_dataflash(tmp_path / "warm.bin", flight_rows(flight), imu_temperature_c=warm)
+    fl = read_flight_log(path)
+    assert fl.temperature is not None and fl.temperature.source == "IMU[0].T"
+    res = replay(fl)
+    duration_s = flight.t_s[-1] - t_start
+    # once a second, from the filter's start (after its initial phase)
+    assert duration_s - 10 <= res.stats["temperature_readings"] <= duration_s + 1
+    assert any("IMU temperature from IMU[0].T: 20.0 to" in n for n in res.notes)
+    assert "temperature" in res.timelines
+    # the older IMU message has no T: the replay says the walk stays off
+    plain = replay(read_flight_log(write_dataflash(tmp_path / "plain.bin", flight_rows(flight))))
+    assert plain.stats["temperature_readings"] == 0
+    assert any("no IMU temperature" in n for n in plain.notes)
+    # a sensor's "not available" code is not a temperature
+    bad = write_dataflash(tmp_path / "bad.bin", flight_rows(flight),
+                          imu_temperature_c=lambda t_s: -273.0)
+    assert read_flight_log(bad).temperature is None
 
 
 def test_dataflash_without_gps_is_imu_only(flight: SitlRecording, tmp_path: Path) -> None:

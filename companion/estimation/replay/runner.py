@@ -233,8 +233,14 @@ class _Recorder:
 
 
 def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[Any],
-              params: dict[str, float], period_us: int) -> tuple[Estimate, dict[str, Any]]:
-    """`EstimatorCore` through its public cycle, one cycle per output period."""
+              params: dict[str, float], period_us: int,
+              temps: list[tuple[int, float]] | None = None) -> tuple[Estimate, dict[str, Any]]:
+    """`EstimatorCore` through its public cycle, one cycle per output period.
+
+    ``temps`` (time us on the IMU's timeline, C) reach the filter at most once a simulated
+    second, as the flight thread gets them from the IMU's 1 Hz slow block: the default
+    temperature coefficients were chosen with that rate.
+    """
     from companion.core.state import ImuSample
     from companion.estimation.fusion import EstimatorCore
 
@@ -246,6 +252,9 @@ def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[A
     batch: list[ImuSample] = []
     batch_t0 = t_list[0] if n else 0
     started_at: int | None = None
+    temps = temps or []
+    ti = 0
+    next_temp_us = -(1 << 62)
     for k in range(n):
         tk = t_list[k]
         batch.append(ImuSample(tk * 1000, k & 0xFFFF, tuple(g_list[k]),  # type: ignore[arg-type]
@@ -259,6 +268,14 @@ def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[A
         running = core.cycle(batch, fix)
         batch = []
         batch_t0 = tk
+        if ti < len(temps) and tk >= next_temp_us and core.filter is not None:
+            newest = None
+            while ti < len(temps) and temps[ti][0] <= tk:
+                newest = temps[ti][1]
+                ti += 1
+            if newest is not None:
+                core.set_temperature(newest)
+                next_temp_us = tk + 1_000_000
         if not running or core.filter is None:
             if core.init_failed:
                 break
@@ -277,6 +294,7 @@ def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[A
         "started": started_at is not None, "init_refused": core.init_failed,
         "moving_start": core.moving_start, "gps_fixes_offered": len(fixes),
         "gps_accepted": core.gps_accepted, "gps_rejected": core.gps_rejected,
+        "temperature_readings": core.temperature_readings,
         "faults": int(est.faults[-1]) if len(est.faults) else 0,
         "heading_aligned_fraction": float(est.aligned.mean()) if len(est.aligned) else 0.0}
     if core.filter is not None:
@@ -426,9 +444,22 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
         notes.append("the ESKF was asked for but the log has no GPS fix: IMU-only instead")
         choice, reason = "attitude", "no GPS fix in the log"
     period_us = max(1, int(opts.output_period_s * 1e6))
+    temps: list[tuple[int, float]] = []
+    temp = flight.temperature
+    if temp is not None:
+        t_keep, t_t, tl_temp, _ = clean_timeline(temp.t_us, "temperature", t0_us, shifts)
+        timelines["temperature"] = tl_temp
+        temps = list(zip(t_t.tolist(), temp.temperature_c[t_keep].tolist(), strict=True))
     stats: dict[str, Any]
     if choice == "eskf":
-        est, stats = _run_eskf(t_imu, gyro, accel, fixes, params, period_us)
+        if temp is not None and temps:
+            c = temp.temperature_c[t_keep]
+            notes.append(f"IMU temperature from {temp.source}: {float(c.min()):.1f} to "
+                         f"{float(c.max()):.1f} C, read once a second")
+        else:
+            notes.append("the log has no IMU temperature: the biases' temperature walk "
+                         "(EST_GB_TEMP, EST_AB_TEMP) stays off")
+        est, stats = _run_eskf(t_imu, gyro, accel, fixes, params, period_us, temps)
         if not stats["started"]:
             why = ("its initialisation was refused (IMU mean is not ~1 g)"
                    if stats["init_refused"] else "it never got its initial phase and a fix")

@@ -101,6 +101,32 @@ class AttitudeSeries:
 
 
 @dataclass
+class TemperatureSeries:
+    """The IMU's temperature (C): the filter lets its biases move while the part warms
+    (``Eskf.set_temperature``), as the flight thread does from the IMU's slow block."""
+
+    t_us: IntArray
+    temperature_c: FloatArray
+    source: str
+
+
+TEMPERATURE_RANGE_C = (-60.0, 130.0)
+"""Readings outside this are a sensor's "not available" code or garbage, never a part's
+temperature (the MEMS parts' operating range is -40..85 C)."""
+
+
+def _temperature(t_us: npt.ArrayLike, temp_c: npt.ArrayLike, source: str
+                 ) -> TemperatureSeries | None:
+    t = np.asarray(t_us, dtype=np.int64)
+    c = np.asarray(temp_c, dtype=float)
+    lo, hi = TEMPERATURE_RANGE_C
+    ok = np.isfinite(c) & (c >= lo) & (c <= hi)
+    if not ok.any():
+        return None
+    return TemperatureSeries(t[ok], c[ok], source)
+
+
+@dataclass
 class FlightLog:
     """What a replay needs from a log, whatever its format."""
 
@@ -112,6 +138,7 @@ class FlightLog:
     notes: list[str] = field(default_factory=list)
     damage: str | None = None  # what was skipped when reading with salvage
     info: dict[str, Any] = field(default_factory=dict)
+    temperature: TemperatureSeries | None = None  # None: the log has none
 
 
 def read_flight_log(path: Path | str, *, salvage: bool = False,
@@ -199,7 +226,7 @@ def read_ulog(path: Path, *, salvage: bool = False) -> FlightLog:
     bad_at, damage = _chain_damage(path, check_ulog_chain(path.read_bytes()), "PX4 ULog",
                                    salvage, "the rest skipped or resynchronised")
     wanted = ["sensor_combined", "vehicle_gps_position", "sensor_gps", "vehicle_attitude",
-              "vehicle_attitude_groundtruth"]
+              "vehicle_attitude_groundtruth", "vehicle_imu_status", "sensor_gyro"]
     quiet = io.StringIO()
     try:
         with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
@@ -251,7 +278,15 @@ def read_ulog(path: Path, *, salvage: bool = False) -> FlightLog:
             "ver_sw": ulog.msg_info_dict.get("ver_sw"),
             "ver_hw": ulog.msg_info_dict.get("ver_hw"),
             "logger_dropouts": len(dropouts)}
-    return FlightLog(path, "px4-ulog", imu, gps, refs, notes, damage, info)
+    temperature = None
+    for name, column in (("vehicle_imu_status", "temperature_gyro"),
+                         ("sensor_gyro", "temperature")):
+        d = sets.get((name, 0))
+        if d is not None and column in d:
+            temperature = _temperature(d["timestamp"], d[column], f"{name}.{column}")
+            if temperature is not None:
+                break
+    return FlightLog(path, "px4-ulog", imu, gps, refs, notes, damage, info, temperature)
 
 
 def _px4_gps(g: dict[str, Any], name: str) -> GpsSeries:
@@ -349,7 +384,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
                 if name.startswith("IMU"):
                     inst = int(getattr(m, "I", 0) or 0) if name == "IMU" else int(name[3]) - 1
                     rows["IMU"].append((inst, t, m.GyrX, m.GyrY, m.GyrZ, m.AccX, m.AccY,
-                                        m.AccZ))
+                                        m.AccZ, getattr(m, "T", math.nan)))
                 elif name == "GPS":
                     rows[name].append((int(getattr(m, "I", 0) or 0), t,
                                        *(getattr(m, f, math.nan) for f in
@@ -378,6 +413,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
     a = np.array([r[1:] for r in imu_rows if r[0] == use], dtype=float)
     imu = ImuSeries(a[:, 0].astype(np.int64), a[:, 1:4].copy(), a[:, 4:7].copy(),
                     f"IMU[{use}]")
+    temperature = _temperature(a[:, 0], a[:, 7], f"IMU[{use}].T")
     gps = None
     if rows["GPS"]:
         g_inst = sorted({r[0] for r in rows["GPS"]})
@@ -402,4 +438,4 @@ def read_dataflash(path: Path, *, salvage: bool = False,
         refs.append(AttitudeSeries(name, a[:, 0].astype(np.int64), np.radians(a[:, 1]),
                                    np.radians(a[:, 2]), np.radians(a[:, 3])))
     return FlightLog(path, "ardupilot-dataflash", imu, gps, refs, notes, damage,
-                     {"imu_instances": instances})
+                     {"imu_instances": instances}, temperature)
