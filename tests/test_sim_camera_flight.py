@@ -111,3 +111,42 @@ def test_a_campaign_flight_may_carry_the_camera(tmp_path: Path) -> None:
     spec.write_text('[[flight]]\nseed = 1\nhorizon_camera = "fog"\n')
     with pytest.raises(CampaignError, match="horizon_camera"):
         load_campaign(spec)
+
+
+def test_after_a_reboot_the_camera_follows_the_runtimes_new_port(tmp_path: Path) -> None:
+    """With `--legacy-listen 0` the rebooted runtime binds another port; the runner names it to
+    the world (a DEST line), so the new estimator still gets the camera's fixes."""
+    from pymavlink import mavutil
+
+    port = free_udp_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "companion", "sim", "--log-dir", str(tmp_path / "flights"),
+         "--params-file", str(tmp_path / "params.parm"), "--mavlink", f"udpout:127.0.0.1:{port}",
+         "--legacy-dest", f"127.0.0.1:{free_udp_port()}", *SIMPLE, "--fast", "--duration", "60",
+         "--scenario", "turns", "--seed", "3", "--horizon-camera", "clean",
+         "--legacy-listen", "0", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    reboot = mavutil.mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN
+    try:
+        assert gcs.wait_heartbeat(timeout=60) is not None
+        acked = False
+        for _ in range(6):  # bounded: a loaded machine may lose the first command
+            gcs.mav.command_long_send(gcs.target_system, 1, reboot, 0, 1, 0, 0, 0, 0, 0, 0)
+            ack = gcs.recv_match(type="COMMAND_ACK", blocking=True, timeout=5)
+            if ack is not None and ack.command == reboot:
+                acked = ack.result == mavutil.mavlink.MAV_RESULT_ACCEPTED
+                break
+        assert acked
+        out, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        gcs.close()
+    assert proc.returncode == 0, err[-3000:]
+    assert "reboot requested" in err
+    summary = json.loads(out)
+    # the summary is the rebooted runtime's: its estimator started after the reboot and fused
+    # the camera's fixes, which reach it only if the world was told the new port
+    assert estimator(summary)["counters"]["horizon_used"] > 100, estimator(summary)

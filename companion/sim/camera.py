@@ -481,6 +481,10 @@ class LegacyHorizonLink:
         self.sender(result.estimate, frame_ns)
         return True
 
+    def retarget(self, host: str, port: int) -> None:
+        """Send to another port from now on: a rebooted runtime may have bound a new one."""
+        self.sender.address = (host, port)
+
     @property
     def acks(self) -> int:
         return self.sender.poll_acks()

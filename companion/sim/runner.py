@@ -131,6 +131,17 @@ class WorldProcess:
         except (BrokenPipeError, OSError) as exc:
             raise SimError(f"the simulator died before the flight started: {exc}") from None
 
+    def retarget(self, **dest: Any) -> None:
+        """Tell the flying world where the camera's fixes go now (after a runtime reboot);
+        a world already gone is the stop path's business, not this one's."""
+        if not dest or self.proc.stdin is None:
+            return
+        try:
+            self.proc.stdin.write("DEST " + json.dumps(dest) + "\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError):
+            log.warning("the simulator is gone: the camera was not retargeted")
+
     def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -181,12 +192,14 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                     on_runtime(rt)
                 if steps.pending:
                     rt.manager.on_tick.append(steps.tick)
-                go = _camera_go(sim, rt) if first else {}  # refused before anything runs
+                go = _camera_go(sim, rt)  # refused before anything runs
                 rt.start()
                 if first:
                     world.go(**go)
                     first = False
                     t0 = time.monotonic()  # the flight starts now; a reboot does not extend it
+                else:
+                    world.retarget(**go)  # the rebooted runtime may have bound a new port
                 remaining = None
                 if duration_s:
                     remaining = max(0.001, duration_s - (time.monotonic() - t0) * clock.scale)

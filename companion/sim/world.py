@@ -244,11 +244,21 @@ class World:
         camera = SimCamera(camera_seed(self.opts.seed), latency_s=CAMERA_LATENCY_S,
                            disturbance="none" if level == "clean" else level)
         if isinstance(link, str):
-            host, sep, port = link.rpartition(":")
-            if not sep or not host or not port.isdigit():
-                raise ValueError(f"horizon camera: expected HOST:PORT, got {link!r}")
-            link = LegacyHorizonLink(host, int(port), vehicle_id, self.clock.realtime_ns)
+            host, port = _host_port(link)
+            link = LegacyHorizonLink(host, port, vehicle_id, self.clock.realtime_ns)
         self.camera = WorldCamera(camera, link, self.clock, threaded=threaded)
+
+    def retarget_camera(self, dest: str) -> bool:
+        """Point the camera's fixes at another `HOST:PORT` (the runtime was rebooted and bound
+        a new legacy port); False when the camera does not send over UDP."""
+        from companion.sim.camera import LegacyHorizonLink
+
+        link = self.camera.link if self.camera is not None else None
+        if not isinstance(link, LegacyHorizonLink):
+            return False
+        host, port = _host_port(dest)
+        link.retarget(host, port)
+        return True
 
     def _close_camera(self) -> dict[str, Any] | None:
         if self.camera is None:
@@ -466,6 +476,26 @@ class World:
         return sum(delta for at, delta in plan.utc_step_s if self.t_s >= at)
 
 
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ValueError(f"horizon camera: expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def _follow_stdin(world: World) -> None:
+    """After GO, the runner may name a new camera destination (`DEST {"horizon_dest": ...}`)
+    when the runtime reboots; anything else, or the pipe closing, is ignored."""
+    for line in sys.stdin:
+        word, _, extra = line.strip().partition(" ")
+        if word != "DEST":
+            continue
+        try:
+            world.retarget_camera(str(json.loads(extra)["horizon_dest"]))
+        except (ValueError, KeyError, TypeError) as exc:
+            print(f"companion.sim.world: bad DEST line {line.strip()!r}: {exc}", file=sys.stderr)
+
+
 def parse_fault(text: str) -> tuple[str, FaultPlan]:
     """`DEV:key=value,...`: garbage, cut, badsum (probabilities); silence, flood, wrongbaud
     (START-END windows, repeatable); floodx (copies per chunk, default 10); baudratio (the
@@ -593,6 +623,9 @@ def main(argv: list[str] | None = None) -> int:
             pty.close()
         print(f"companion.sim.world: bad GO line {line!r}: {exc}", file=sys.stderr)
         return 1
+    if world.camera is not None:
+        threading.Thread(target=_follow_stdin, args=(world,), name="world-stdin",
+                         daemon=True).start()
     stats = world.run()
     try:
         print("STATS " + json.dumps(stats), flush=True)
