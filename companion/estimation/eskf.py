@@ -536,8 +536,9 @@ class Eskf:
         half_dt2 = 0.5 * dt * dt
         p0, p1, p2 = self._pos_f
         v0, v1, v2 = self._vel_f
-        self._pos_f = (p0 + v0 * dt + half_dt2 * fx, p1 + v1 * dt + half_dt2 * fy,
-                       p2 + v2 * dt + half_dt2 * fz_g)
+        # the same operations, in the same order, as the array form this replaced
+        self._pos_f = (p0 + (v0 * dt + half_dt2 * fx), p1 + (v1 * dt + half_dt2 * fy),
+                       p2 + (v2 * dt + half_dt2 * fz_g))
         self._vel_f = (v0 + fx * dt, v1 + fy * dt, v2 + fz_g * dt)
         self._f_nav_f = (fx, fy, fz)
         self._t += dt
