@@ -31,6 +31,8 @@ Vec3 = tuple[float, float, float]
 
 
 def _check_geodetic(lat_deg: float, lon_deg: float, alt_m: float, where: str) -> None:
+    if -90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 360.0 and -1.0e5 < alt_m < 1.0e6:
+        return  # in range is finite too (NaN and infinity fail every comparison)
     for name, value in (("lat_deg", lat_deg), ("lon_deg", lon_deg), ("alt_m", alt_m)):
         if not math.isfinite(value):
             raise ValueError(f"{where}: {name} must be finite, got {value!r}")

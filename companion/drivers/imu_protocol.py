@@ -151,14 +151,25 @@ def encode_fast_frame(
     slow_word: int,
 ) -> bytes:
     """Build a 20-byte fast frame; values beyond the int16 range saturate as on the device."""
-    _check_range(counter, 0, CYCLE_FRAMES - 1, "counter")
-    _check_range(status, 0, 0xFF, "status")
-    _check_range(slow_word, 0, 0xFFFF, "slow_word")
-    rates = _triple(rates_rad_s, "rates_rad_s")
-    accel = _triple(accel_m_s2, "accel_m_s2")
-    raw_rates = [_quantise(v, RATE_LSB_RAD_S, _INT16, "rates_rad_s") for v in rates]
-    raw_accel = [_quantise(v, ACCEL_LSB_M_S2, _INT16, "accel_m_s2") for v in accel]
-    body = bytearray(_FAST.pack(SYNC, counter, status, *raw_rates, *raw_accel, slow_word, 0))
+    if not (0 <= counter < CYCLE_FRAMES and 0 <= status <= 0xFF and 0 <= slow_word <= 0xFFFF):
+        _check_range(counter, 0, CYCLE_FRAMES - 1, "counter")
+        _check_range(status, 0, 0xFF, "status")
+        _check_range(slow_word, 0, 0xFFFF, "slow_word")
+    r0, r1, r2 = _triple(rates_rad_s, "rates_rad_s")
+    a0, a1, a2 = _triple(accel_m_s2, "accel_m_s2")
+    # the simulator's 100 Hz path: one expression instead of six _quantise calls, which then
+    # name the culprit when a value is not finite
+    raw: tuple[int, ...]
+    try:
+        raw = (round(r0 / RATE_LSB_RAD_S), round(r1 / RATE_LSB_RAD_S), round(r2 / RATE_LSB_RAD_S),
+               round(a0 / ACCEL_LSB_M_S2), round(a1 / ACCEL_LSB_M_S2), round(a2 / ACCEL_LSB_M_S2))
+    except (ValueError, OverflowError):
+        raw = tuple([_quantise(v, RATE_LSB_RAD_S, _INT16, "rates_rad_s") for v in (r0, r1, r2)]
+                    + [_quantise(v, ACCEL_LSB_M_S2, _INT16, "accel_m_s2") for v in (a0, a1, a2)])
+    lo, hi = _INT16
+    body = bytearray(_FAST.pack(SYNC, counter, status,
+                                *[lo if v < lo else hi if v > hi else v for v in raw],
+                                slow_word, 0))
     struct.pack_into("<H", body, 18, sum(body[2:18]) & 0xFFFF)
     return bytes(body)
 

@@ -12,11 +12,11 @@ would restate them.
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -169,13 +169,21 @@ class ImuSim:
         self.config = cfg = config or ImuSimConfig()
         self.errors = ImuErrorModel(cfg, rng, self.RATE_HZ)
         self.frames = 0
-        self.last_rates_rad_s = np.zeros(3)
-        """Measured (biased, noisy, not yet wire-quantised) rates of the last frame."""
-        self.last_accel_m_s2 = np.zeros(3)
+        self._last_out: list[float] = [0.0] * 6
         self._sum = [0.0] * 6
         self._count = 0
         self._words: tuple[int, ...] = ()
         self._temperature_c = cfg.temperature_at(0.0)
+
+    @property
+    def last_rates_rad_s(self) -> np.ndarray:
+        """Measured (biased, noisy, not yet wire-quantised) rates of the last frame, rad/s."""
+        return np.array(self._last_out[:3])
+
+    @property
+    def last_accel_m_s2(self) -> np.ndarray:
+        """Measured specific force of the last frame (as the rates), m/s^2."""
+        return np.array(self._last_out[3:])
 
     @property
     def gyro_bias_rad_s(self) -> np.ndarray:
@@ -216,8 +224,7 @@ class ImuSim:
         for i in range(6):
             total[i] += out[i]
         self._count += 1
-        self.last_rates_rad_s = np.array(out[:3])
-        self.last_accel_m_s2 = np.array(out[3:])
+        self._last_out = out  # arrays only when asked for (the properties): not per frame
         self.frames += 1
         return encode_fast_frame(counter, status, out[:3], out[3:], self._words[counter])
 
@@ -335,7 +342,7 @@ class GpsSim:
         self.config = cfg = config or GpsSimConfig()
         if cfg.talker not in TALKERS:
             raise ValueError(f"GpsSimConfig.talker must be one of {TALKERS}, got {cfg.talker!r}")
-        self._walk_m = np.zeros(3)
+        self._walk_m = [0.0, 0.0, 0.0]
         self._extra = independent_stream(rng)
         self._gm_m = [0.0, 0.0, 0.0]
         self._gm_started = False
@@ -371,14 +378,18 @@ class GpsSim:
             1.0 / cfg.rate_hz if self._last_utc_s is None else max(utc_s - self._last_utc_s, 0.0)
         )
         self._last_utc_s = utc_s
-        draw = self.rng.standard_normal(9)
-        walk_sigma = np.array([cfg.horiz_walk_m_sqrt_s] * 2 + [cfg.vert_walk_m_sqrt_s])
-        white_sigma = np.array([cfg.horiz_white_m] * 2 + [cfg.vert_white_m])
-        self._walk_m += draw[0:3] * walk_sigma * math.sqrt(dt_s)
-        error_m = self._walk_m + draw[3:6] * white_sigma
-        velocity = np.array([vn_m_s, ve_m_s, vd_m_s]) + draw[6:9] * cfg.vel_noise_m_s
+        # scalar arithmetic, element for element what the array form computed (same draws,
+        # same rounding): at 10 Hz numpy's per-call cost was most of an epoch
+        d = self.rng.standard_normal(9).tolist()
+        walk_sigma = (cfg.horiz_walk_m_sqrt_s, cfg.horiz_walk_m_sqrt_s, cfg.vert_walk_m_sqrt_s)
+        white_sigma = (cfg.horiz_white_m, cfg.horiz_white_m, cfg.vert_white_m)
+        sq = math.sqrt(dt_s)
+        walk = self._walk_m = [self._walk_m[i] + d[i] * walk_sigma[i] * sq for i in range(3)]
+        error_m = [walk[i] + d[3 + i] * white_sigma[i] for i in range(3)]
+        noise = cfg.vel_noise_m_s
+        velocity = (vn_m_s + d[6] * noise, ve_m_s + d[7] * noise, vd_m_s + d[8] * noise)
         outage = self._extra_terms(utc_s, dt_s, error_m)
-        self.last_error_ned_m = (float(error_m[0]), float(error_m[1]), float(error_m[2]))
+        self.last_error_ned_m = (error_m[0], error_m[1], error_m[2])
         fix = 0 if outage else cfg.fix
         std_h = math.hypot(cfg.horiz_white_m, cfg.horiz_walk_m_sqrt_s)
         std_v = math.hypot(cfg.vert_white_m, cfg.vert_walk_m_sqrt_s)
@@ -386,7 +397,7 @@ class GpsSim:
             std_h = math.hypot(std_h, cfg.gm_horiz_m)
             std_v = math.hypot(std_v, cfg.gm_vert_m)
         days, seconds = divmod(utc_s, 86400.0)
-        common = GpsSolution(
+        common: dict[str, Any] = dict(
             utc=seconds,
             date=cfg.date + dt.timedelta(days=int(days)),
             geoid_sep_m=cfg.geoid_sep_m,
@@ -401,15 +412,16 @@ class GpsSim:
             lon_std_m=std_h,
         )
         if fix == 0:
-            solution = common  # a receiver without a fix leaves position and velocity empty
+            # a receiver without a fix leaves position and velocity empty
+            solution = GpsSolution(**common)
         else:
             north_deg, east_deg = _metres_to_degrees(lat_deg, error_m[0], error_m[1])
-            vn, ve, vd = (float(v) for v in velocity)
-            solution = dataclasses.replace(
-                common,
-                lat_deg=min(max(lat_deg + north_deg, -90.0), 90.0),
+            vn, ve, vd = velocity
+            solution = GpsSolution(
+                **common,
+                lat_deg=clamp(lat_deg + north_deg, -90.0, 90.0),
                 lon_deg=(lon_deg + east_deg + 180.0) % 360.0 - 180.0,
-                alt_m=alt_m - float(error_m[2]),
+                alt_m=alt_m - error_m[2],
                 speed_m_s=math.hypot(vn, ve),
                 course_deg=math.degrees(math.atan2(ve, vn)) % 360.0,
                 vn_m_s=vn,
@@ -419,7 +431,7 @@ class GpsSim:
         self.last_solution = solution
         return encode_epoch(solution, cfg.talker, cfg.sentences, cfg.ashtech_pos)
 
-    def _extra_terms(self, utc_s: float, dt_s: float, error_m: np.ndarray) -> bool:
+    def _extra_terms(self, utc_s: float, dt_s: float, error_m: list[float]) -> bool:
         """Add the correlated and multipath errors to ``error_m``, draw this epoch's latency;
         return whether the epoch falls in an outage."""
         cfg = self.config
@@ -439,14 +451,14 @@ class GpsSim:
                 phi = math.exp(-dt_s / cfg.gm_tau_s)
                 q = math.sqrt(1.0 - phi * phi)
                 self._gm_m = [phi * self._gm_m[i] + q * sigma[i] * float(n[i]) for i in range(3)]
-            error_m += self._gm_m
+            error_m[:] = [error_m[i] + self._gm_m[i] for i in range(3)]
         if cfg.multipath_per_h:
             decay = math.exp(-dt_s / cfg.multipath_tau_s)
             self._multipath_m = [m * decay for m in self._multipath_m]
             if extra.random() < cfg.multipath_per_h / 3600.0 * dt_s:
                 jump = extra.standard_normal(3) * cfg.multipath_m * np.array([1.0, 1.0, 1.5])
                 self._multipath_m = [self._multipath_m[i] + float(jump[i]) for i in range(3)]
-            error_m += self._multipath_m
+            error_m[:] = [error_m[i] + self._multipath_m[i] for i in range(3)]
         outage = utc_s < self._outage_until_s
         if not outage and cfg.outage_per_h and cfg.outage_s:
             if extra.random() < cfg.outage_per_h / 3600.0 * dt_s:

@@ -32,8 +32,9 @@ keeps the catalogue readable as a whole.
 from __future__ import annotations
 
 import math
+import operator
 import random
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from typing import NamedTuple, Protocol
 
@@ -587,13 +588,10 @@ class Pilot:
         return roll + n[0], pull + n[1], yaw + n[2]
 
 
-def _truth_values(truth: TruthState) -> list[float]:
-    """Every field of ``truth``, read by attribute (``dataclasses.fields`` at 50 Hz cost more
-    than the pilot's arithmetic)."""
-    return [getattr(truth, name) for name in _TRUTH_FIELDS]
-
-
 _TRUTH_FIELDS = tuple(f.name for f in fields(TruthState))
+_truth_values: Callable[[TruthState], tuple[float, ...]] = operator.attrgetter(*_TRUTH_FIELDS)
+"""Every field of a truth state, in one call (``dataclasses.fields`` at 50 Hz cost more than
+the pilot's arithmetic)."""
 
 
 def fly(

@@ -266,21 +266,24 @@ class ThreadManager:
         if not self._started:
             self.start()
         clock = self.ctx.clock
+        # the suspension check reads the process's CPU time: a lockstep flight (whose time
+        # stops with the process, nothing to rebase) skips it
+        watch_suspend = not clock.lockstep
         last_host_s, last_cpu_s = time.monotonic(), time.process_time()
         while self._stop_reason is None:
             gran_ms = int(self.ctx.params.get("MGR_WDG_GRAN_MS"))
             wait_host_s = clock.to_host_s(gran_ms / 1000.0)
             clock.wait_event(self._wake, gran_ms / 1000.0)
             self._wake.clear()
-            now_host_s, now_cpu_s = time.monotonic(), time.process_time()
-            gap_s = now_host_s - last_host_s
-            # Suspended, not starved by one of our own threads: the process used (almost) no
-            # CPU over the gap. A thread holding the interpreter lock inside C for as long burns
-            # CPU the whole time, and is judged as usual. (A lockstep flight's time stops with
-            # the process: nothing to rebase.)
-            if (not clock.lockstep and gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
-                    and now_cpu_s - last_cpu_s < SUSPEND_CPU_SHARE * gap_s):
-                self._rebase(gap_s)
+            if watch_suspend:
+                now_host_s, now_cpu_s = time.monotonic(), time.process_time()
+                gap_s = now_host_s - last_host_s
+                # Suspended, not starved by one of our own threads: the process used (almost)
+                # no CPU over the gap. A thread holding the interpreter lock inside C for as
+                # long burns CPU the whole time, and is judged as usual.
+                if (gap_s > max(SUSPEND_GAP_S, 10 * wait_host_s)
+                        and now_cpu_s - last_cpu_s < SUSPEND_CPU_SHARE * gap_s):
+                    self._rebase(gap_s)
             self._process_commands()
             if self._stop_reason is not None:
                 break
@@ -292,7 +295,8 @@ class ThreadManager:
                     log.exception("manager tick hook failed")
             # the gap is measured over the wait only: the manager's own work (joining a thread
             # that will not stop takes up to twice MGR_SHUTDOWN_MS) is not a suspension
-            last_host_s, last_cpu_s = time.monotonic(), time.process_time()
+            if watch_suspend:
+                last_host_s, last_cpu_s = time.monotonic(), time.process_time()
             limit_s = duration_s if duration_s is not None else int(
                 self.ctx.params.get("MGR_EXEC_TIME_S"))
             if limit_s and clock.monotonic_ns() - self._start_mono_ns >= limit_s * 1e9:
