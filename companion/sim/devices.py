@@ -540,7 +540,7 @@ class ServoBoardSim:
             - drain_per_h * t_s / 3600.0
             + self.rng.normal(0.0, self.config.batt_noise_raw)
         )
-        return int(min(max(round(level), 0), 255))
+        return clamp(round(level), 0, 255)
 
     def auto_active(self, t_s: float) -> bool:
         """Whether the computer drives the surfaces at sim time ``t_s``."""
