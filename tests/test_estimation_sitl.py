@@ -204,7 +204,7 @@ def test_gps_outage_in_a_turn_grows_the_error_and_gps_return_recovers_it() -> No
         assert run.faults == 0 and run.pd_failures == 0 and run.non_finite == 0
         err = filter_errors(rec, run.quat, run=run)
         g = outage_growth(rec, err, window)
-        assert g.end_hpos_m > 3.0 * g.before_hpos_m  # dead reckoning drifts...
+        assert g.end_hpos_m > 2.0 * g.before_hpos_m  # dead reckoning drifts...
         assert g.recovered_hpos_m < 1.5  # ...and the first fixes after the gap pull it back
         assert g.max_incl_deg < 2.0
         incl_rms[name] = rms_deg(err.inclination_rad[scored])

@@ -79,7 +79,7 @@ from companion.estimation.quat import (
 
 log = logging.getLogger(__name__)
 
-N_STATES = 16
+N_STATES = 25
 IDX_POS = slice(0, 3)
 IDX_VEL = slice(3, 6)
 IDX_ATT = slice(6, 9)
@@ -89,6 +89,9 @@ IDX_YAW = 8
 """Heading error: the NED-down component of the attitude error."""
 IDX_GPS_LAG = 15
 """The GPS receiver's unknown output delay, s (beyond the transfer time the driver measures)."""
+IDX_GYRO_MATRIX = slice(16, 25)
+"""The gyro's scale-factor and cross-axis error ``M`` (row-major, dimensionless): the part reads
+``(I + M) w + b`` for a body rate ``w``."""
 FIXED_LAG_VAR = 1e-12
 """Variance held by a delay that is not estimated: uncoupled from every other state, so the
 covariance stays positive definite and nothing ever moves it."""
@@ -169,6 +172,9 @@ class EskfState:
     gps_lag_s: float = 0.0
     """Estimated GPS output delay beyond the measured transfer time."""
     gps_lag_std_s: float = 0.0
+    gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """Estimated gyro scale-factor and cross-axis error ``M`` (the part reads
+    ``(I + M) w + b``); zeros when it is not estimated."""
 
 
 class Eskf:
@@ -203,6 +209,11 @@ class Eskf:
             fixed (not estimated).
         gps_lag_rw_s_rt_s: random walk of the delay (receivers change it with their load).
         max_gps_lag_s: the estimate is clipped to 0..this.
+        gyro_matrix_std: 1-sigma of each element of the gyro's scale-factor and cross-axis
+            error ``M`` before the flight (0: not estimated, the gyro is taken as exact).
+        gyro_matrix_rw_rt_s: random walk of ``M``'s elements, 1/sqrt(s) (scale factors move
+            with temperature too).
+        max_gyro_matrix: ``M``'s elements are clipped to +-this.
         gyro_bias_temp_rad_s_per_c, accel_bias_temp_m_s2_per_c: 1-sigma of the sensor's bias
             change per degree C (its temperature coefficient, unknown per part); with
             ``set_temperature`` the biases may then move that much faster while the part's
@@ -246,6 +257,9 @@ class Eskf:
         max_gps_lag_s: float = 0.5,
         gyro_bias_temp_rad_s_per_c: float = 0.0,
         accel_bias_temp_m_s2_per_c: float = 0.0,
+        gyro_matrix_std: float = 0.0,
+        gyro_matrix_rw_rt_s: float = 1e-5,
+        max_gyro_matrix: float = 0.1,
         cov_period_s: float = 0.01,
         history_s: float = 1.0,
         max_dt_s: float = 0.1,
@@ -257,7 +271,7 @@ class Eskf:
         settings = dict(locals())
         settings.pop("self")
         may_be_zero = ("gps_lag_s", "gps_lag_std_s", "gyro_bias_temp_rad_s_per_c",
-                       "accel_bias_temp_m_s2_per_c")
+                       "accel_bias_temp_m_s2_per_c", "gyro_matrix_std", "gyro_matrix_rw_rt_s")
         for name, value in settings.items():
             if not (isinstance(value, int | float) and math.isfinite(value)
                     and (value > 0 or (value == 0 and name in may_be_zero))):
@@ -292,6 +306,10 @@ class Eskf:
         self.max_gps_lag_s = float(max_gps_lag_s)
         self.gyro_bias_temp_rad_s_per_c = float(gyro_bias_temp_rad_s_per_c)
         self.accel_bias_temp_m_s2_per_c = float(accel_bias_temp_m_s2_per_c)
+        self.gyro_matrix_std = float(gyro_matrix_std)
+        self.gyro_matrix_rw_rt_s = float(gyro_matrix_rw_rt_s)
+        self.max_gyro_matrix = float(max_gyro_matrix)
+        self._gm_on = self.gyro_matrix_std > 0.0
         self._temp_ref_c = math.nan  # temperature at the last counted change
         self._pend_temp_c = 0.0  # counted change not yet given to the covariance
         self.cov_period_s = float(cov_period_s)
@@ -324,12 +342,14 @@ class Eskf:
         self._pos_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._vel_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._set_biases(np.zeros(3), np.zeros(3))
+        self._set_gyro_matrix(np.zeros((3, 3)))
         self._p = np.eye(N_STATES)
         self._lag = self.gps_lag_s
         self._f_nav_f = (0.0, 0.0, -self.gravity_m_s2)
         # increments since the covariance was last propagated (see cov_period_s)
         self._pend_dt = 0.0
         self._pend_dv_f = (0.0, 0.0, 0.0)
+        self._pend_dth_f = (0.0, 0.0, 0.0)  # body-frame rotation (gyro-matrix Jacobian)
         self._pend_q: tuple[float, ...] = self._q
         # (time, position, velocity, attitude) after each sample
         self._history: deque[tuple[float, tuple[float, float, float], tuple[float, float, float],
@@ -357,6 +377,7 @@ class Eskf:
         var[IDX_GYRO_BIAS] = self.init_gyro_bias_std_rad_s**2
         var[IDX_ACCEL_BIAS] = self.init_accel_bias_std_m_s2**2
         var[IDX_GPS_LAG] = self.gps_lag_std_s**2 if self._lag_on else FIXED_LAG_VAR
+        var[IDX_GYRO_MATRIX] = self.gyro_matrix_std**2 if self._gm_on else FIXED_LAG_VAR
         return np.diag(var)
 
     def initialise(
@@ -463,6 +484,9 @@ class Eskf:
                 q[i, i] = self.accel_bias_rw_m_s2_rt_s**2 * key
             if self._lag_on:
                 q[IDX_GPS_LAG, IDX_GPS_LAG] = self.gps_lag_rw_s_rt_s**2 * key
+            if self._gm_on:
+                for i in range(IDX_GYRO_MATRIX.start, IDX_GYRO_MATRIX.stop):
+                    q[i, i] = self.gyro_matrix_rw_rt_s**2 * key
             if len(self._q_cache) > 64:
                 self._q_cache.clear()
             self._q_cache[key] = q
@@ -516,7 +540,17 @@ class Eskf:
         # cost more than the arithmetic.
         bg0, bg1, bg2 = self._bg_f
         ba0, ba1, ba2 = self._ba_f
-        wx, wy, wz = (g0 - bg0) * dt, (g1 - bg1) * dt, (g2 - bg2) * dt
+        if self._gm_on:
+            # the part reads (I + M) w + b: undo the estimated M (its inverse, kept as c)
+            u0, u1, u2 = g0 - bg0, g1 - bg1, g2 - bg2
+            c = self._gm_inv_f
+            u0, u1, u2 = (c[0] * u0 + c[1] * u1 + c[2] * u2, c[3] * u0 + c[4] * u1 + c[5] * u2,
+                          c[6] * u0 + c[7] * u1 + c[8] * u2)
+            wx, wy, wz = u0 * dt, u1 * dt, u2 * dt
+            th = self._pend_dth_f
+            self._pend_dth_f = (th[0] + wx, th[1] + wy, th[2] + wz)
+        else:
+            wx, wy, wz = (g0 - bg0) * dt, (g1 - bg1) * dt, (g2 - bg2) * dt
         fb0, fb1, fb2 = a0 - ba0, a1 - ba1, a2 - ba2
         if self._pend_dt == 0.0:
             self._pend_q = self._q  # attitude at the start of the covariance period
@@ -576,6 +610,11 @@ class Eskf:
         rot0 = rotmat_f(*self._pend_q)
         f[3:6, 12:15] = rot0 * -dt
         f[6:9, 9:12] = rot0 * -dt
+        if self._gm_on:
+            # d(dtheta)/dM: the rate error -C dM w, over the period's body rotation
+            rc = rot0 @ self._gm_inv
+            f[6:9, IDX_GYRO_MATRIX] = (rc[:, :, None] * -np.array(self._pend_dth_f)).reshape(3, 9)
+            self._pend_dth_f = (0.0, 0.0, 0.0)
         p = f @ self._p @ f.T
         p += self._process_noise(dt)
         if self._pend_temp_c > 0.0:
@@ -813,6 +852,11 @@ class Eskf:
         )
         if self._lag_on:
             self._lag = clamp(self._lag + d[IDX_GPS_LAG], 0.0, self.max_gps_lag_s)
+        if self._gm_on:
+            lim = self.max_gyro_matrix
+            m = self._gm.reshape(-1).tolist()
+            self._set_gyro_matrix(np.array(
+                [clamp(m[i] + d[16 + i], -lim, lim) for i in range(9)]).reshape(3, 3))
         # error-reset Jacobian for a NED-frame attitude error: G = I + [dtheta/2]x
         if tx * tx + ty * ty + tz * tz > 1e-12:
             g = np.eye(3) + 0.5 * np.array(((0.0, -tz, ty), (tz, 0.0, -tx), (-ty, tx, 0.0)))
@@ -934,6 +978,9 @@ class Eskf:
             pos, vel = (good[1].copy(), good[2].copy()) if good is not None else (np.zeros(3), np.zeros(3))
         self._set_biases(self._bg if np.isfinite(self._bg).all() else np.zeros(3),
                          self._ba if np.isfinite(self._ba).all() else np.zeros(3))
+        if not np.isfinite(self._gm).all():
+            self._set_gyro_matrix(np.zeros((3, 3)))
+        self._pend_dth_f = (0.0, 0.0, 0.0)
         self._q = (q[0], q[1], q[2], q[3])
         self._pos, self._vel = pos, vel
         self._p = self._initial_covariance()
@@ -977,6 +1024,18 @@ class Eskf:
         self._bg, self._ba = bg, ba
         self._bg_f = (float(bg[0]), float(bg[1]), float(bg[2]))
         self._ba_f = (float(ba[0]), float(ba[1]), float(ba[2]))
+
+    def _set_gyro_matrix(self, m: FloatArray) -> None:
+        """The gyro's estimated matrix error and the inverse of ``I + M`` the predictions apply."""
+        self._gm = m
+        self._gm_inv = np.linalg.inv(np.eye(3) + m)
+        self._gm_inv_f = tuple(self._gm_inv.reshape(-1).tolist())
+
+    @property
+    def gyro_matrix_estimate(self) -> FloatArray:
+        """The estimated scale-factor and cross-axis error ``M`` (3x3, a copy; zeros when it is
+        not estimated): the gyro reads ``(I + M) w + b``."""
+        return self._gm.copy()
 
     def _remember_good(self) -> None:
         self._last_good = (self._q, self._pos, self._vel)
@@ -1040,6 +1099,29 @@ class Eskf:
         p[IDX_GPS_LAG, IDX_GPS_LAG] = std * std if self._lag_on else FIXED_LAG_VAR
         return True
 
+    def set_gyro_matrix_std(self, std: float) -> bool:
+        """Restart the gyro scale-factor and cross-axis estimate with a new prior (a parameter
+        change): 0 stops estimating it and takes the gyro as exact again.
+
+        False (and nothing changed) on a negative or non-finite value.
+        """
+        value = float(std)
+        if not (math.isfinite(value) and value >= 0.0):
+            self.rejected_inputs += 1
+            return False
+        self._propagate_covariance()
+        self.gyro_matrix_std, self._gm_on = value, value > 0.0
+        self._q_cache.clear()
+        self._set_gyro_matrix(np.zeros((3, 3)))
+        self._pend_dth_f = (0.0, 0.0, 0.0)
+        self._f[IDX_ATT, IDX_GYRO_MATRIX] = 0.0
+        p = self._p
+        p[IDX_GYRO_MATRIX, :] = 0.0
+        p[:, IDX_GYRO_MATRIX] = 0.0
+        for i in range(IDX_GYRO_MATRIX.start, IDX_GYRO_MATRIX.stop):
+            p[i, i] = value * value if self._gm_on else FIXED_LAG_VAR
+        return True
+
     @property
     def gps_lag_estimate_s(self) -> float:
         """The receiver delay the filter currently applies on top of the measured latency."""
@@ -1079,6 +1161,7 @@ class Eskf:
             rejected_inputs=self.rejected_inputs,
             gps_lag_s=self._lag,
             gps_lag_std_s=math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0)),
+            gyro_matrix=self._gm.copy(),
         )
 
     def flight_view(self) -> FlightView:

@@ -40,9 +40,11 @@ STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_
                  "std_vn_m_s", "std_ve_m_s", "std_vd_m_s", "std_roll_rad", "std_pitch_rad",
                  "std_yaw_rad", "faults", "aligned"]
 GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_s", "nis",
-               "accepted", "latency_s", "gps_lag_s", "gps_lag_std_s"]
+               "accepted", "latency_s", "gps_lag_s", "gps_lag_std_s", "gyro_scale_x",
+               "gyro_scale_y", "gyro_scale_z"]
 """Per fused fix: innovations, NIS, verdict, the whole latency applied, and the receiver delay
-the filter estimates within it (with its 1-sigma)."""
+the filter estimates within it (with its 1-sigma), and the gyro scale-factor errors it
+estimates (the diagonal of ``EST_GS_STD``'s matrix; fractions, 0 when not estimated)."""
 
 
 class EstimatorThread(ManagedThread):
@@ -61,8 +63,10 @@ class EstimatorThread(ManagedThread):
             float_param(f"{p}_INIT_S", 1.0, 0.1, 60.0, "s",
                         "Initial phase: IMU averaging time that levels the attitude and takes "
                         "the gyro bias before the filter starts."),
-            float_param(f"{p}_GYR_NSD", 0.003, 1e-5, 1.0, "rad/s/rtHz",
-                        "Gyro white-noise density (angle random walk)."),
+            float_param(f"{p}_GYR_NSD", 0.001, 1e-5, 1.0, "rad/s/rtHz",
+                        "Gyro white-noise density (angle random walk), widened beyond a "
+                        "datasheet's to cover vibration and g-sensitivity the filter does not "
+                        "model."),
             float_param(f"{p}_ACC_NSD", 0.05, 1e-4, 5.0, "m/s^2/rtHz",
                         "Accelerometer white-noise density."),
             float_param(f"{p}_GB_RW", 2e-4, 1e-8, 0.01, "rad/s/rts",
@@ -70,6 +74,11 @@ class EstimatorThread(ManagedThread):
                         "up: about 1 deg/s over its first minutes)."),
             float_param(f"{p}_AB_RW", 1e-3, 1e-7, 0.1, "m/s^2/rts",
                         "Accelerometer bias random walk."),
+            float_param(f"{p}_GS_STD", 0.01, 0.0, 0.1, "",
+                        "1-sigma of each element of the gyro's scale-factor and cross-axis "
+                        "error before the flight (fraction; a consumer part's +-3 % "
+                        "tolerance is about 0.01): the filter estimates the 3x3 error in "
+                        "turns. 0 takes the gyro's scale as exact."),
             float_param(f"{p}_GB_TEMP", 5e-4, 0.0, 0.01, "rad/s/degC",
                         "Gyro bias change per degree of IMU temperature, 1-sigma (a typical "
                         "consumer MEMS part: 0.03 deg/s/C): while the part warms up the bias "
@@ -89,7 +98,9 @@ class EstimatorThread(ManagedThread):
             float_param(f"{p}_TRIM_YAW", 0.0, -0.5, 0.5, "rad",
                         "IMU board yaw against the airframe (a level calibration cannot see it; "
                         "measure it on the ground)."),
-            float_param(f"{p}_GPS_VEL", 0.15, 0.01, 10.0, "m/s", "GPS velocity 1-sigma."),
+            float_param(f"{p}_GPS_VEL", 0.25, 0.01, 10.0, "m/s",
+                        "GPS velocity 1-sigma (a receiver's own figure is about 0.05 m/s; "
+                        "the rest covers its latency jitter in turns)."),
             float_param(f"{p}_GPS_LAG", 0.05, 0.0, 0.5, "s",
                         "Receiver output delay beyond the latency the driver measures: the "
                         "starting guess, refined online unless GPS_LAGSD is 0."),
@@ -105,7 +116,7 @@ class EstimatorThread(ManagedThread):
     def define_logs(self, tlog: Any) -> None:
         tlog.define(FMT_STATE, ",".join(["%.6f"] * 3 + ["%.3f"] * 6 + ["%.6f"] * 6
                                         + ["%.4f"] * 9) + ",%u,%hhu", STATE_COLUMNS)
-        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f",
+        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f,%.5f,%.5f,%.5f",
                     GPS_COLUMNS)
 
     def _params(self) -> dict[str, float]:
@@ -168,7 +179,8 @@ class EstimatorThread(ManagedThread):
                     st = core.filter.state()
                     self.tlog.log(FMT_GPS, *res.innovation,
                                   res.nis if math.isfinite(res.nis) else -1.0,
-                                  int(res.accepted), latency, st.gps_lag_s, st.gps_lag_std_s)
+                                  int(res.accepted), latency, st.gps_lag_s, st.gps_lag_std_s,
+                                  *st.gyro_matrix.diagonal().tolist())
         slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
         if slow is not None and slow_version != self._temp_seen:
             self._temp_seen = slow_version

@@ -253,6 +253,10 @@ class SitlRecording:
     """True scale-factor errors (fractions, at 25 C) and mounting misalignment (rotation vector
     from body to the part's axes, rad) of the simulated IMU."""
     imu_accel_scale: FloatArray = field(default_factory=lambda: np.zeros(3))
+    imu_gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """The gyro's true matrix error ``M`` at the flight's mean temperature (scale factor,
+    cross-axis sensitivity and mounting misalignment together): the part reads ``(I + M) w``
+    plus its bias, the model the estimator's ``EST_GS_STD`` states follow."""
     imu_misalignment_rad: FloatArray = field(default_factory=lambda: np.zeros(3))
     imu_temperature_c: FloatArray = field(default_factory=lambda: np.zeros(0))
     """The IMU's temperature per tick, (N,)."""
@@ -412,6 +416,8 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
         gps_fix_ok=np.array([e[2] for e in gps_epochs], dtype=bool),
         imu_gyro_scale=np.array(imu_sim.errors.gyro_scale),
         imu_accel_scale=np.array(imu_sim.errors.accel_scale),
+        imu_gyro_matrix=np.array(imu_sim.errors.scale_matrices(
+            float(np.mean(temperature)) if len(temperature) else 25.0)[0]) - np.eye(3),
         imu_misalignment_rad=np.array(imu_sim.errors.misalignment_rad),
         imu_temperature_c=temperature,
         propeller_rpm=rpm,
@@ -514,6 +520,13 @@ class EskfRun:
     gps_rejected: int
     horizon_used: int
     moving_start: bool
+    gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((0, 9)))
+    """The estimated gyro matrix error ``M`` (row-major) per tick, NaN before the start; once
+    a second (every ``GYRO_MATRIX_EVERY`` ticks) after :func:`evaluate` compacts the run."""
+
+
+GYRO_MATRIX_EVERY = 100
+"""Ticks between the gyro-matrix estimates a compacted run keeps (1 s at 100 Hz)."""
 
 
 def _no_clock() -> int:
@@ -548,6 +561,7 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
     vel = np.full((n, 3), np.nan)
     bg = np.full((n, 3), np.nan)
     ba = np.full((n, 3), np.nan)
+    gm = np.full((n, 9), np.nan)
     step_us = np.full(n, np.nan, dtype=np.float32)
     filter_us = np.full(n, np.nan, dtype=np.float32)
     step_cpu_us = np.full(n, np.nan, dtype=np.float32)
@@ -597,6 +611,7 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
         update_tick[k] = fix is not None
         quat[k], pos[k], vel[k] = st.quaternion, st.pos_ned_m, st.vel_ned_m_s
         bg[k], ba[k] = st.gyro_bias_rad_s, st.accel_bias_m_s2
+        gm[k] = st.gyro_matrix.reshape(-1)
         if not (np.isfinite(quat[k]).all() and np.isfinite(pos[k]).all()
                 and np.isfinite(vel[k]).all()):
             non_finite += 1
@@ -627,7 +642,7 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
         fault_reasons=[fl.reason for fl in f.fault_log] if f is not None else [],
         pd_checks=pd_checks, pd_failures=pd_failures, non_finite=non_finite,
         exceptions=exceptions, gps_accepted=est.gps_accepted, gps_rejected=est.gps_rejected,
-        horizon_used=est.horizon_used, moving_start=est.moving_start,
+        horizon_used=est.horizon_used, moving_start=est.moving_start, gyro_matrix=gm,
     )
 
 
@@ -816,6 +831,8 @@ class RunResult:
     elapsed_s: float
     camera: dict[str, Any] | None = None
     """The camera's figures when the horizon fixes came from the detector."""
+    gyro_matrix_true: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """The simulated gyro's matrix error (:attr:`SitlRecording.imu_gyro_matrix`)."""
 
 
 def _compact(run: EskfRun) -> EskfRun:
@@ -829,7 +846,8 @@ def _compact(run: EskfRun) -> EskfRun:
         start_tick=run.start_tick, faults=run.faults, fault_reasons=run.fault_reasons,
         pd_checks=run.pd_checks, pd_failures=run.pd_failures, non_finite=run.non_finite,
         exceptions=run.exceptions, gps_accepted=run.gps_accepted, gps_rejected=run.gps_rejected,
-        horizon_used=run.horizon_used, moving_start=run.moving_start)
+        horizon_used=run.horizon_used, moving_start=run.moving_start,
+        gyro_matrix=run.gyro_matrix[::GYRO_MATRIX_EVERY].copy())
 
 
 def _f32(errors: FilterErrors) -> FilterErrors:
@@ -892,4 +910,5 @@ def evaluate(
         outage=outage,
         elapsed_s=time.perf_counter() - t0,
         camera=rec.camera,
+        gyro_matrix_true=rec.imu_gyro_matrix,
     )
