@@ -4,7 +4,7 @@ The 2003 estimator restarted four times in one five-minute flight with numerical
 one is built so that cannot take the thread down:
 
 * the nominal state (attitude quaternion, NED velocity and position, gyro and accel biases) is
-  propagated exactly by the IMU; the Kalman filter only tracks a small 15-element error state
+  propagated exactly by the IMU; the Kalman filter only tracks a small error state
   whose linearisation stays valid, and the quaternion never has to be renormalised by the
   filter;
 * every update uses the Joseph form, the covariance is symmetrised and checked (finite,
@@ -13,9 +13,11 @@ one is built so that cannot take the thread down:
   GPS rejected again and again) is an *estimator fault*: it is counted, logged with a reason,
   and repaired by a reset. No method raises on bad data; bad inputs are rejected and counted.
 
-Error state (16), in this order (see ``IDX_*``): position (m, NED), velocity (m/s, NED),
+Error state (25), in this order (see ``IDX_*``): position (m, NED), velocity (m/s, NED),
 attitude error (rad, rotation vector in NED: ``q_true = exp(dtheta) * q``), gyro bias (rad/s),
-accelerometer bias (m/s^2), and the GPS receiver's unknown output delay (s). With the attitude
+accelerometer bias (m/s^2), the GPS receiver's unknown output delay (s), and the gyro's
+scale-factor and cross-axis error ``M`` (nine elements, row-major; the part reads
+``(I + M) w + b``). With the attitude
 error in the navigation frame the gyro and accelerometer noises enter isotropically, so the
 process noise does not depend on attitude and is computed once per propagation period.
 
@@ -27,6 +29,12 @@ and a filter told the wrong delay turns every turn into a velocity error (0.1 s 
 the velocity (position rows) and the acceleration (velocity rows) at that instant, so the delay
 becomes observable whenever the aircraft accelerates, and stays put (with its uncertainty) in
 straight flight, where it does not matter.
+
+Gyro matrix: a consumer gyro's sensitivity is good to a few per cent per axis and each axis
+sees a per cent or two of the others. In a banked turn that is a rate error which comes and
+goes with the turn, too quick for the bias states and, over a 20 s turn, a degree of tilt. Each
+sample is corrected with the estimated ``(I + M)^-1``; the states learn through the attitude
+errors the GPS sees, so only in turns and rolls (``gyro_matrix_std`` 0 leaves them out).
 
 Temperature: the biases of a MEMS part follow its temperature by an unknown coefficient, and
 the part warms by some 20 C after switch-on; ``set_temperature`` lets the bias covariance grow
@@ -48,7 +56,7 @@ position/velocity process noise block and the chi-square gates are closed forms
 scipy's ``chi2``, which are not imported in flight: half a second of start-up); filterpy's NEES
 helper is used in the tests.
 
-Size: the 15-state filter's prediction, updates (GPS, horizon, zero velocity), delayed-
+Size: the filter's prediction, updates (GPS, horizon, zero velocity), delayed-
 measurement history and health checks are one piece of mathematics.
 """
 
