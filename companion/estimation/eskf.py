@@ -1123,11 +1123,7 @@ class Eskf:
         self._set_gyro_matrix(np.zeros((3, 3)))
         self._pend_dth_f = (0.0, 0.0, 0.0)
         self._f[IDX_ATT, IDX_GYRO_MATRIX] = 0.0
-        p = self._p
-        p[IDX_GYRO_MATRIX, :] = 0.0
-        p[:, IDX_GYRO_MATRIX] = 0.0
-        for i in range(IDX_GYRO_MATRIX.start, IDX_GYRO_MATRIX.stop):
-            p[i, i] = value * value if self._gm_on else FIXED_LAG_VAR
+        self._inflate(IDX_GYRO_MATRIX, value * value if self._gm_on else FIXED_LAG_VAR)
         return True
 
     @property
