@@ -204,6 +204,41 @@ def test_gps_driver_groups_epochs_and_measures_latency(tmp_path: Path) -> None:
         dev.close()
 
 
+def test_gps_reads_block_between_epochs_and_wake_for_an_incomplete_one(tmp_path: Path) -> None:
+    """Short read timeouts only while an epoch waits for its idle hand-off: a silent line
+    costs about four wake-ups a second, not fifty, and an epoch missing a sentence still
+    reaches the flight after GPS_IDLE_MS of silence."""
+    from companion.drivers.gps import IDLE_READ_TIMEOUT_S
+
+    dev = FakeDevice(tmp_path, "gps")
+    sim = GpsSim(np.random.default_rng(4))
+    drv = GpsDriver(str(dev.link))
+    sols: list[object] = []
+    drv.item_sink = sols.append
+    try:
+        with Harness(drv):
+            assert wait_for(lambda: drv.port is not None, 3.0)
+            assert drv.read_timeout_now_s() == IDLE_READ_TIMEOUT_S  # nothing open: block long
+            t0 = drv.port_counters.timeouts
+            time.sleep(1.0)
+            idle_timeouts = drv.port_counters.timeouts - t0
+            assert 1 <= idle_timeouts <= 6, idle_timeouts  # 0.02 s reads gave about 50
+            epoch = sim.epoch(43200.0, 43.7, 10.4, 300.0, 20.0, 5.0, -1.0)
+            # no GST: every other sentence arrives, the epoch stays open until the line is quiet
+            lines = [ln for ln in epoch.split(b"\n") if ln and b"GST" not in ln]
+            dev.write(b"\n".join(lines) + b"\n")
+            assert wait_for(lambda: drv.decoder.holds_epoch or sols, 2.0)
+            assert wait_for(lambda: len(sols) == 1, 2.0)
+            assert not drv.decoder.holds_epoch
+            assert drv.read_timeout_now_s() == IDLE_READ_TIMEOUT_S
+            fix = drv.ctx.state.gps.read()
+            assert fix is not None and abs(fix.lat_deg - 43.7) < 1e-3
+            # handed off by the idle rule (20 ms of silence), not by a long read timing out
+            assert fix.latency_s is not None and 0.015 < fix.latency_s < 0.15, fix.latency_s
+    finally:
+        dev.close()
+
+
 def test_servo_exchange_closes_the_loop(tmp_path: Path) -> None:
     dev = FakeDevice(tmp_path, "servo")
     board = ServoBoardSim(np.random.default_rng(5))

@@ -150,6 +150,8 @@ def test_the_same_seed_flies_byte_identical_logs_and_every_rate_is_exact(tmp_pat
     t = read_log(dir1 / "imu.bin").data(1)["time_s"]
     assert np.allclose(np.diff(t), 0.01, atol=1e-6)
     assert threads["imu"]["counters"]["bytes_discarded"] > 0  # the garbage reached the decoder
+    # the GPS thread wakes for its epochs, not on 20 ms read timeouts (1,300 in 30 s before)
+    assert threads["gps"]["counters"]["timeouts"] <= 30, threads["gps"]["counters"]
     assert first["lockstep"]["sim_seconds"] == pytest.approx(30.0, abs=0.1)
     # another seed flies another flight: the comparison above can fail
     _, dir3 = fly(tmp_path / "c", **{**sim, "seed": 5})

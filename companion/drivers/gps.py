@@ -24,6 +24,9 @@ FMT_SOLUTION = 1
 FMT_RAW = 2
 EXPECTED = ("GGA", "RMC", "VTG", "GSA", "GST")
 UTC_JUMP_S = 1.0
+IDLE_READ_TIMEOUT_S = 0.25
+"""A read's timeout while no epoch is open: a silent receiver still returns from `step`
+four times per 1000 ms watchdog window (reported as silent, never as stalled)."""
 """More than any receiver latency jitter, less than a leap second's or a reset's step."""
 
 
@@ -94,6 +97,11 @@ class GpsDriver(SerialDevice):
                                              idle_ms=int(self.param("IDLE_MS")), pashr=pashr)
         self.decoder.allow_no_checksum = bool(self.param("NO_CKSUM"))
         self.decoder.idle_handoff_ns = int(self.param("IDLE_MS")) * 1_000_000
+
+    def read_timeout_now_s(self) -> float:
+        # Short reads only while an epoch waits for its idle hand-off; between epochs a read
+        # waits for the next one (at 10 Hz, 4 of 5 of the short timeouts found nothing).
+        return self.read_timeout_s if self.decoder.holds_epoch else IDLE_READ_TIMEOUT_S
 
     def drain_decoder(self, t_ns: int) -> list[object]:
         return list(self.decoder.flush(t_ns))

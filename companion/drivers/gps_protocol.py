@@ -476,6 +476,11 @@ class NmeaDecoder:
         del buf[:pos]
         return out
 
+    @property
+    def holds_epoch(self) -> bool:
+        """An epoch is open: only :meth:`poll` after silence can still hand it off."""
+        return self._open is not None
+
     def poll(self, t_ns: int) -> list[GpsSolution]:
         """Hand off the open epoch if the line has been quiet for ``idle_handoff_ms``."""
         if (

@@ -73,6 +73,7 @@ class SerialDevice(ManagedThread):
         self._backoff_s = REOPEN_MIN_S
         self._next_open_ns = 0
         self._ever_opened = False
+        self._port_timeout_s: float | None = read_timeout_s  # what the open port blocks for
         #: Called with every decoded item (replay tools, tests); None in flight.
         self.item_sink: Callable[[object], None] | None = None
         self.log_raw = self.raw_format is not None
@@ -95,6 +96,12 @@ class SerialDevice(ManagedThread):
         """Items decoded from `data` (None: the read timed out; a decoder that hands off on
         silence does so here)."""
         return ()
+
+    def read_timeout_now_s(self) -> float:
+        """How long the next read may block, s of the runtime's clock. A driver whose decoder
+        only needs a timeout while it holds part of a message (the GPS's idle hand-off)
+        returns a longer one otherwise: each timeout is a wake-up that does nothing."""
+        return self.read_timeout_s
 
     def publish(self, item: object, t_ns: int) -> int:
         """Write one decoded item to the vehicle state and the thread's log; returns how many
@@ -158,6 +165,7 @@ class SerialDevice(ManagedThread):
             log.info("%s: reopened %s%s", self.name, self.url, f" ({target})" if target else "")
         self._ever_opened = True
         self._backoff_s = REOPEN_MIN_S
+        self._port_timeout_s = self.read_timeout_s
         self.port = port
         self.on_port_opened()
         return True
@@ -209,6 +217,10 @@ class SerialDevice(ManagedThread):
         if port is None:
             return None
         try:
+            want_s = self.read_timeout_now_s()
+            if want_s != self._port_timeout_s:
+                port.timeout = self.ctx.clock.to_host_s(want_s)
+                self._port_timeout_s = want_s
             waiting = port.in_waiting
             data = port.read(max(1, min(waiting, 4096)) if waiting else 1)
             if data and not waiting:
