@@ -32,6 +32,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("gcs_transfer", []),
     ("estimation", ["--full"]),
     ("estimation_sitl", []),
+    ("estimation_budget", []),
     ("horizon", []),
     ("report", []),
     ("dataset", []),
