@@ -177,12 +177,18 @@ def test_silence_is_reported_and_port_reopened(imu_dev: FakeDevice) -> None:
             feeder.join(2)
 
 
-def test_gps_driver_groups_epochs_and_measures_latency(tmp_path: Path) -> None:
+def _gps_on_pty(tmp_path: Path, seed: int) -> tuple[FakeDevice, GpsSim, GpsDriver, list[object]]:
+    """A GPS driver on a pseudo-terminal, the receiver simulator that writes to it, and the
+    list every decoded solution is appended to."""
     dev = FakeDevice(tmp_path, "gps")
-    sim = GpsSim(np.random.default_rng(3))
     drv = GpsDriver(str(dev.link))
     sols: list[object] = []
     drv.item_sink = sols.append
+    return dev, GpsSim(np.random.default_rng(seed)), drv, sols
+
+
+def test_gps_driver_groups_epochs_and_measures_latency(tmp_path: Path) -> None:
+    dev, sim, drv, sols = _gps_on_pty(tmp_path, 3)
     try:
         with Harness(drv):
             for k in range(20):
@@ -210,11 +216,7 @@ def test_gps_reads_block_between_epochs_and_wake_for_an_incomplete_one(tmp_path:
     reaches the flight after GPS_IDLE_MS of silence."""
     from companion.drivers.gps import IDLE_READ_TIMEOUT_S
 
-    dev = FakeDevice(tmp_path, "gps")
-    sim = GpsSim(np.random.default_rng(4))
-    drv = GpsDriver(str(dev.link))
-    sols: list[object] = []
-    drv.item_sink = sols.append
+    dev, sim, drv, sols = _gps_on_pty(tmp_path, 4)
     try:
         with Harness(drv):
             assert wait_for(lambda: drv.port is not None, 3.0)

@@ -24,10 +24,10 @@ FMT_SOLUTION = 1
 FMT_RAW = 2
 EXPECTED = ("GGA", "RMC", "VTG", "GSA", "GST")
 UTC_JUMP_S = 1.0
+"""More than any receiver latency jitter, less than a leap second's or a reset's step."""
 IDLE_READ_TIMEOUT_S = 0.25
 """A read's timeout while no epoch is open: a silent receiver still returns from `step`
 four times per 1000 ms watchdog window (reported as silent, never as stalled)."""
-"""More than any receiver latency jitter, less than a leap second's or a reset's step."""
 
 
 FIX_LAYOUT = RecordLayout.of(GpsFix)
