@@ -403,3 +403,61 @@ def test_imu_rate_does_not_matter(rate_hz: float) -> None:
     assert rms(tilt) < 1.3 * rms(tilt_ref) + 0.05
     assert rms(run.vel_err_m_s[late]) < 1.3 * rms(ref.vel_err_m_s[late_ref]) + 0.02
     assert run.pd_failures == 0 and run.final.faults == 0
+
+
+# --- the GPS update's fast paths give what the general ones gave ---------------------------
+
+
+@pytest.mark.parametrize("value", [
+    (1.0, 2.0, 3.0), [1, 2, 3], np.array([1.0, -2.0, 3.5]), np.array([[1.0, 2.0, 3.0]]),
+    (np.float64(1.0), 2.0, 3.0), (1.0, math.nan, 3.0), (1.0, 2.0), np.zeros(4), "abc",
+])
+def test_measurement_vectors_are_read_and_refused_as_before(value: object) -> None:
+    from companion.estimation import eskf
+
+    def general(v: object) -> np.ndarray | str:
+        try:
+            arr = np.asarray(v, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            return "refused"
+        if arr.shape != (3,) or not np.isfinite(arr).all():
+            return "refused"
+        return arr
+
+    def fast(v: object) -> np.ndarray | str:
+        try:
+            return eskf._vec3(v)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            return "refused"
+
+    want, got = general(value), fast(value)
+    if isinstance(want, str):
+        assert got == "refused"
+    else:
+        assert isinstance(got, np.ndarray) and got.dtype == float
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("value", [0.5, (0.5, 0.5, 2.0), (1e-6, 1.0, 1.0), (0.0, 1.0, 1.0),
+                                   (-1.0, 1.0, 1.0), np.array([0.3, 0.3, 0.9]), (math.inf, 1, 1)])
+def test_standard_deviations_are_read_and_refused_as_before(value: object) -> None:
+    from companion.estimation import eskf
+
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape == (1,):
+        arr = np.repeat(arr, 3)
+    if not (np.isfinite(arr).all() and (arr > 0).all()):
+        with pytest.raises(ValueError, match="standard deviation"):
+            eskf._std3(value)  # type: ignore[arg-type]
+        return
+    np.testing.assert_array_equal(eskf._std3(value), np.maximum(arr, 1e-3))  # type: ignore[arg-type]
+
+
+def test_gyro_matrix_inverse_in_closed_form_matches_numpy() -> None:
+    rng = np.random.default_rng(7)
+    f = Eskf(gyro_matrix_std=0.01)
+    for _ in range(50):
+        m = rng.normal(0.0, 0.05, (3, 3))
+        f._set_gyro_matrix(m)
+        np.testing.assert_allclose(f._gm_inv, np.linalg.inv(np.eye(3) + m), rtol=0, atol=1e-14)
+        assert f._gm_inv_f == tuple(f._gm_inv.reshape(-1).tolist())

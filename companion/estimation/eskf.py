@@ -368,6 +368,7 @@ class Eskf:
         self._gps_rejections = 0
         self._att_rejections = 0
         self._last_gps_innovation = np.zeros(6)
+        self._last_gps_innovation_f: tuple[float, ...] = (0.0,) * 6  # as flight_view gives it
         self._last_gps_nis = math.nan
         self._last_att_innovation = np.zeros(2)
         self._last_att_nis = math.nan
@@ -728,6 +729,7 @@ class Eskf:
         r = np.diag(np.concatenate((p_std**2, v_std**2)))
         result = self._kalman_update(y, h, r, self.gps_gate)
         self._last_gps_innovation = y
+        self._last_gps_innovation_f = tuple(y.tolist())
         self._last_gps_nis = result.nis
         if result.accepted:
             self._gps_rejections = 0
@@ -807,10 +809,10 @@ class Eskf:
     def _kalman_update(
         self, y: FloatArray, h: FloatArray, r: FloatArray, gate: float
     ) -> UpdateResult:
+        # no positive-definiteness test before the update: S's Cholesky below refuses a
+        # covariance broken where ``h`` looks, and the full test after the update (the same
+        # outcome, one factorisation instead of two) catches the rest
         p = self._p
-        if not self._is_pd(p):
-            self._fault("covariance not positive definite before an update")
-            return UpdateResult(False, "reset", y)
         if not self._yaw_aligned:
             h = h.copy()
             h[:, IDX_YAW] = 0.0
@@ -867,7 +869,8 @@ class Eskf:
                 [clamp(m[i] + d[16 + i], -lim, lim) for i in range(9)]).reshape(3, 3))
         # error-reset Jacobian for a NED-frame attitude error: G = I + [dtheta/2]x
         if tx * tx + ty * ty + tz * tz > 1e-12:
-            g = np.eye(3) + 0.5 * np.array(((0.0, -tz, ty), (tz, 0.0, -tx), (-ty, tx, 0.0)))
+            hx, hy, hz = 0.5 * tx, 0.5 * ty, 0.5 * tz
+            g = np.array(((1.0, -hz, hy), (hz, 1.0, -hx), (-hy, hx, 1.0)))
             p = self._p
             p[IDX_ATT, :] = g @ p[IDX_ATT, :]
             p[:, IDX_ATT] = p[:, IDX_ATT] @ g.T
@@ -931,7 +934,8 @@ class Eskf:
         if not state_ok:
             self._fault("non-finite state")
             return False
-        if not (math.isfinite(float(diag.sum())) and float(diag.min()) >= 0.0):
+        d = diag.tolist()  # two reductions over a list beat two numpy calls at this size
+        if not (math.isfinite(sum(d)) and min(d) >= 0.0):
             self._fault("covariance not finite or negative variance")
             return False
         if check_pd and not self._is_pd(p):
@@ -1036,8 +1040,17 @@ class Eskf:
     def _set_gyro_matrix(self, m: FloatArray) -> None:
         """The gyro's estimated matrix error and the inverse of ``I + M`` the predictions apply."""
         self._gm = m
-        self._gm_inv = np.linalg.inv(np.eye(3) + m)
-        self._gm_inv_f = tuple(self._gm_inv.reshape(-1).tolist())
+        # the 3x3 inverse in closed form (adjugate over determinant): np.linalg.inv's call
+        # overhead was a third of a GPS update's state injection
+        (a, b, c), (d, e, f), (g, h, i) = m.tolist()
+        a, e, i = a + 1.0, e + 1.0, i + 1.0
+        c0, c1, c2 = e * i - f * h, f * g - d * i, d * h - e * g
+        det = a * c0 + b * c1 + c * c2
+        inv = (c0 / det, (c * h - b * i) / det, (b * f - c * e) / det,
+               c1 / det, (a * i - c * g) / det, (c * d - a * f) / det,
+               c2 / det, (b * g - a * h) / det, (a * e - b * d) / det)
+        self._gm_inv_f = inv
+        self._gm_inv = np.array(inv).reshape(3, 3)
 
     @property
     def gyro_matrix_estimate(self) -> FloatArray:
@@ -1182,7 +1195,7 @@ class Eskf:
             diag[IDX_YAW] = math.pi**2 / 3.0
         return FlightView(q, roll, pitch, yaw, self._pos_f, self._vel_f, self._bg_f, self._ba_f,
                           tuple(diag),
-                          tuple(self._last_gps_innovation.tolist()),
+                          self._last_gps_innovation_f,
                           self._initialised and self._yaw_aligned, self.faults,
                           self.last_fault_reason)
 
@@ -1199,7 +1212,29 @@ _H_GPS.flags.writeable = False
 """The GPS measurement matrix's constant part (position and velocity observed directly)."""
 
 
+def _floats3(value: object) -> tuple[float, float, float] | None:
+    """Three finite floats from a flat 3-array or 3-sequence of numbers, else None (the callers
+    then take the general path, which also names what was wrong). At 10 Hz per GPS fix the
+    array checks cost more than the rest of the measurement's bookkeeping."""
+    if isinstance(value, np.ndarray):
+        if value.shape != (3,):
+            return None
+        value = value.tolist()
+    if not isinstance(value, tuple | list) or len(value) != 3:
+        return None
+    items: list[object] = list(value)
+    if not all(type(v) in (float, int) for v in items):
+        return None
+    x, y, z = (float(v) for v in items)  # type: ignore[arg-type]
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return None
+    return x, y, z
+
+
 def _vec3(value: ArrayLike) -> FloatArray:
+    fast = _floats3(value)
+    if fast is not None:
+        return np.array(fast)
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape != (3,):
         raise ValueError(f"expected 3 values, got {arr.shape[0]}")
@@ -1210,6 +1245,9 @@ def _vec3(value: ArrayLike) -> FloatArray:
 
 def _std3(value: float | Sequence[float] | FloatArray) -> FloatArray:
     """A standard deviation per axis from a scalar or 3 values; must be finite and > 0."""
+    fast = _floats3(value)
+    if fast is not None and min(fast) > 0.0:
+        return np.array((max(fast[0], 1e-3), max(fast[1], 1e-3), max(fast[2], 1e-3)))
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape == (1,):
         arr = np.repeat(arr, 3)
