@@ -461,3 +461,6 @@ def test_gyro_matrix_inverse_in_closed_form_matches_numpy() -> None:
         f._set_gyro_matrix(m)
         np.testing.assert_allclose(f._gm_inv, np.linalg.inv(np.eye(3) + m), rtol=0, atol=1e-14)
         assert f._gm_inv_f == tuple(f._gm_inv.reshape(-1).tolist())
+    # a singular I + M (possible only with max_gyro_matrix near 1) is dropped, not raised
+    f._set_gyro_matrix(np.diag([-1.0, 0.0, 0.0]))
+    assert (f.gyro_matrix_estimate == 0.0).all() and (f._gm_inv == np.eye(3)).all()

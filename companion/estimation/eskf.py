@@ -1046,6 +1046,12 @@ class Eskf:
         a, e, i = a + 1.0, e + 1.0, i + 1.0
         c0, c1, c2 = e * i - f * h, f * g - d * i, d * h - e * g
         det = a * c0 + b * c1 + c * c2
+        if not (math.isfinite(det) and abs(det) > 1e-9):
+            # only with max_gyro_matrix set near 1: a singular I + M is no estimate, drop it
+            self._gm = np.zeros((3, 3))
+            self._gm_inv_f = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+            self._gm_inv = np.eye(3)
+            return
         inv = (c0 / det, (c * h - b * i) / det, (b * f - c * e) / det,
                c1 / det, (a * i - c * g) / det, (c * d - a * f) / det,
                c2 / det, (b * g - a * h) / det, (a * e - b * d) / det)
