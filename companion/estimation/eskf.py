@@ -367,8 +367,8 @@ class Eskf:
         self._predicts = 0
         self._gps_rejections = 0
         self._att_rejections = 0
-        self._last_gps_innovation = np.zeros(6)
-        self._last_gps_innovation_f: tuple[float, ...] = (0.0,) * 6  # as flight_view gives it
+        # a tuple, as flight_view publishes it at every sample; state() makes the array
+        self._last_gps_innovation: tuple[float, ...] = (0.0,) * 6
         self._last_gps_nis = math.nan
         self._last_att_innovation = np.zeros(2)
         self._last_att_nis = math.nan
@@ -728,8 +728,7 @@ class Eskf:
             h[3:6, IDX_GPS_LAG] = -acc_then
         r = np.diag(np.concatenate((p_std**2, v_std**2)))
         result = self._kalman_update(y, h, r, self.gps_gate)
-        self._last_gps_innovation = y
-        self._last_gps_innovation_f = tuple(y.tolist())
+        self._last_gps_innovation = tuple(y.tolist())
         self._last_gps_nis = result.nis
         if result.accepted:
             self._gps_rejections = 0
@@ -923,7 +922,6 @@ class Eskf:
             p[:, IDX_GPS_LAG] = 0.0
             p[IDX_GPS_LAG, IDX_GPS_LAG] = FIXED_LAG_VAR
         self._p = p
-        diag = np.diagonal(p)
         # one sum per vector: NaN or infinity in any element makes it non-finite (this runs
         # at the IMU rate, where four isfinite().all() calls cost more than the check is worth)
         state_ok = (
@@ -934,7 +932,7 @@ class Eskf:
         if not state_ok:
             self._fault("non-finite state")
             return False
-        d = diag.tolist()  # two reductions over a list beat two numpy calls at this size
+        d = np.diagonal(p).tolist()  # two reductions over a list beat two numpy calls here
         if not (math.isfinite(sum(d)) and min(d) >= 0.0):
             self._fault("covariance not finite or negative variance")
             return False
@@ -1174,7 +1172,7 @@ class Eskf:
             gyro_bias_rad_s=self._bg.copy(),
             accel_bias_m_s2=self._ba.copy(),
             cov_diag=diag,
-            last_gps_innovation=self._last_gps_innovation.copy(),
+            last_gps_innovation=np.array(self._last_gps_innovation),
             last_gps_nis=self._last_gps_nis,
             last_attitude_innovation=self._last_att_innovation.copy(),
             last_attitude_nis=self._last_att_nis,
@@ -1201,7 +1199,7 @@ class Eskf:
             diag[IDX_YAW] = math.pi**2 / 3.0
         return FlightView(q, roll, pitch, yaw, self._pos_f, self._vel_f, self._bg_f, self._ba_f,
                           tuple(diag),
-                          self._last_gps_innovation_f,
+                          self._last_gps_innovation,
                           self._initialised and self._yaw_aligned, self.faults,
                           self.last_fault_reason)
 
