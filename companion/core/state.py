@@ -10,12 +10,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from companion.core.fastinit import fast_frozen
 from companion.core.logged import logged
 from companion.core.sync import DataSlot, MessageQueue, WaitableSlot
 
 Vec3 = tuple[float, float, float]
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class ImuSample:
     """One fast IMU frame, converted: body rates (rad/s) and specific force (m/s^2), x fwd y right z down."""
@@ -28,6 +30,7 @@ class ImuSample:
     accel_ok: bool = True
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class ImuSlowSample:
     """The once-per-second high-resolution block."""
@@ -39,6 +42,7 @@ class ImuSlowSample:
     bit_word: int
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class GpsFix:
     """One GPS solution (one epoch) as the flight uses it; None where the receiver did not say.
@@ -69,6 +73,7 @@ class GpsFix:
     """Receiver-to-driver latency as measured by the driver (first byte to hand-off)."""
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class ServoState:
     """One servo-board exchange: what the pilot commanded and what the computer sent."""
@@ -84,6 +89,7 @@ class ServoState:
     servo_batt_raw: int
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class EstimatorState:
     t_ns: int
@@ -105,6 +111,7 @@ class EstimatorState:
     faults: int = 0
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class ControlOutput:
     """Normalised surface commands: aileron/elevator/rudder -1..1, throttle 0..1."""
@@ -118,6 +125,7 @@ class ControlOutput:
     mode: str = "off"
 
 
+@fast_frozen
 @dataclass(frozen=True)
 class HorizonMeasurement:
     """Attitude from horizon detection on the ground, sent back to the aircraft."""

@@ -30,6 +30,8 @@ from typing import Any
 import pynmea2
 from pynmea2.nmea_utils import dm_to_sd
 
+from companion.core.fastinit import fast_frozen
+
 __all__ = [
     "DEFAULT_SENTENCES",
     "GpsSolution",
@@ -86,7 +88,8 @@ class NmeaCounters:
     epochs: int = 0
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class GpsSolution:
     """One receiver epoch, in SI units; None where no sentence of the epoch carried the value."""
 

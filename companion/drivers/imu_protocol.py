@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
+from companion.core.fastinit import fast_frozen
 from companion.core.mathutil import clamp
 
 __all__ = [
@@ -81,7 +82,8 @@ class DecoderCounters:
     slow_dropped: int = 0
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class ImuFast:
     """One 100 Hz sample in SI units (body axes: x forward, y right, z down)."""
 
@@ -106,7 +108,8 @@ class ImuFast:
         return bool(self.status & STATUS_SELF_TEST)
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class ImuSlow:
     """The once-a-second high-resolution block, in SI units."""
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from functools import reduce
 from operator import xor
 
+from companion.core.fastinit import fast_frozen
 from companion.core.mathutil import clamp
 from companion.drivers.imu_protocol import DecoderCounters, SyncFrameDecoder
 
@@ -80,7 +81,8 @@ _COMMAND = struct.Struct("<2sBB8HB")
 _PILOT = struct.Struct("<2sBB8HBBB")
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class ServoCommand:
     """What the computer asks of the board; a channel at 0 us means 'no command'."""
 
@@ -91,7 +93,8 @@ class ServoCommand:
     """Arrival time of the completing chunk when decoded; unused when encoding."""
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class PilotFrame:
     """The board's answer: the pilot's receiver channels, switch state and battery levels."""
 

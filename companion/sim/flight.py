@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import jsbsim
 
+from companion.core.fastinit import fast_frozen
 from companion.core.geo import NedFrame
 from companion.core.mathutil import clamp
 
@@ -98,7 +99,8 @@ AIRCRAFT: dict[str, AircraftSpec] = {
 DEFAULT_AIRCRAFT = "c172p"
 
 
-@dataclass(frozen=True, slots=True)
+@fast_frozen
+@dataclass(frozen=True)
 class TruthState:
     """True aircraft state at one instant, SI units.
 
