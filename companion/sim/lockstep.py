@@ -41,7 +41,10 @@ SCHEME = "lockstep"
 PORT_BUFFER_BYTES = 4096
 """What a device's unread bytes may pile up to; beyond it new bytes are lost, as a
 pseudo-terminal's buffer (4 KiB on Linux) loses them when nobody reads."""
-LOG_DRAIN_PERIOD_S = 0.1
+LOG_DRAIN_PERIOD_S = 1.0
+"""How often (simulated s) the scheduler writes the queued log records to disk. Each drain
+costs a write per log file whatever it holds, so draining ten times a second cost more than
+the records' own encoding; a second's records (about 45 kB) wait in memory instead."""
 LOCKSTEP_REFUSED_FAULTS = ("pyloop", "cblock")
 
 
