@@ -364,6 +364,11 @@ def test_unknown_gps_delay_is_estimated_from_turns() -> None:
     f = Eskf(gps_lag_s=0.0, gps_lag_std_s=0.1)
     untold = run_filter(*flight, eskf=f, compensate_latency=False)
     assert 0.05 < f.state().gps_lag_s < 0.2
+    # what the flight thread logs at each fix, read without state()'s copies
+    st = f.state()
+    assert f.gps_lag_estimate_s == st.gps_lag_s
+    assert f.gps_lag_estimate_std_s == st.gps_lag_std_s > 0.0
+    assert f.gyro_matrix_diagonal() == st.gyro_matrix.diagonal().tolist()
     late = untold.t_s > 60.0
     tilt = np.hypot(untold.roll_err_deg, untold.pitch_err_deg)[late]
     tilt_told = np.hypot(told.roll_err_deg, told.pitch_err_deg)[late]

@@ -1062,6 +1062,10 @@ class Eskf:
         not estimated): the gyro reads ``(I + M) w + b``."""
         return self._gm.copy()
 
+    def gyro_matrix_diagonal(self) -> list[float]:
+        """The scale-factor errors alone (the diagonal of :attr:`gyro_matrix_estimate`)."""
+        return self._gm.diagonal().tolist()  # type: ignore[no-any-return]
+
     def _remember_good(self) -> None:
         self._last_good = (self._q, self._pos, self._vel)
 
@@ -1147,6 +1151,12 @@ class Eskf:
     def gps_lag_estimate_s(self) -> float:
         """The receiver delay the filter currently applies on top of the measured latency."""
         return self._lag
+
+    @property
+    def gps_lag_estimate_std_s(self) -> float:
+        """The 1-sigma uncertainty of :attr:`gps_lag_estimate_s` (s), as :meth:`state` has it,
+        without :meth:`state`'s array copies (the flight thread logs it at every fix)."""
+        return math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0))
 
     @property
     def fault_log(self) -> list[EstimatorFault]:

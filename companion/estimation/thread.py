@@ -175,12 +175,12 @@ class EstimatorThread(ManagedThread):
             fused = core.fuse_gps(fix)
             if fused is not None and self.tlog is not None:
                 res, latency = fused
-                if res.innovation.size == 6 and core.filter is not None:
-                    st = core.filter.state()
-                    self.tlog.log(FMT_GPS, *res.innovation,
+                f = core.filter
+                if res.innovation.size == 6 and f is not None:
+                    self.tlog.log(FMT_GPS, *res.innovation.tolist(),
                                   res.nis if math.isfinite(res.nis) else -1.0,
-                                  int(res.accepted), latency, st.gps_lag_s, st.gps_lag_std_s,
-                                  *st.gyro_matrix.diagonal().tolist())
+                                  int(res.accepted), latency, f.gps_lag_estimate_s,
+                                  f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal())
         slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
         if slow is not None and slow_version != self._temp_seen:
             self._temp_seen = slow_version
