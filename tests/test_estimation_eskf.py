@@ -464,8 +464,39 @@ def test_gyro_matrix_inverse_in_closed_form_matches_numpy() -> None:
     for _ in range(50):
         m = rng.normal(0.0, 0.05, (3, 3))
         f._set_gyro_matrix(m)
-        np.testing.assert_allclose(f._gm_inv, np.linalg.inv(np.eye(3) + m), rtol=0, atol=1e-14)
-        assert f._gm_inv_f == tuple(f._gm_inv.reshape(-1).tolist())
+        np.testing.assert_allclose(np.array(f._gm_inv_f).reshape(3, 3),
+                                   np.linalg.inv(np.eye(3) + m), rtol=0, atol=1e-14)
     # a singular I + M (possible only with max_gyro_matrix near 1) is dropped, not raised
     f._set_gyro_matrix(np.diag([-1.0, 0.0, 0.0]))
-    assert (f.gyro_matrix_estimate == 0.0).all() and (f._gm_inv == np.eye(3)).all()
+    assert (f.gyro_matrix_estimate == 0.0).all() and f._gm_inv_f == tuple(np.eye(3).reshape(-1).tolist())
+
+
+@pytest.mark.parametrize("gyro_matrix_std", [0.0, 0.01])
+def test_transition_written_in_one_call_matches_its_blocks(gyro_matrix_std: float) -> None:
+    """The covariance transition's varying entries are computed as floats and written with
+    one `put`; they must be the blocks the propagation is defined by."""
+    from companion.estimation import eskf
+    from companion.estimation.quat import rotmat_f
+    rng = np.random.default_rng(3)
+    f = Eskf(gyro_matrix_std=gyro_matrix_std)
+    f._set_gyro_matrix(rng.normal(0.0, 0.01, (3, 3)))
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    dt = 0.03
+    fx, fy, fz = rng.normal(0.0, 0.3, 3).tolist()
+    th = rng.normal(0.0, 0.01, 3)
+    f._pend_q = tuple(q.tolist())
+    f._pend_dt = dt
+    f._pend_dv_f = (fx, fy, fz)
+    f._pend_dth_f = tuple(th.tolist())
+    f._propagate_covariance()
+    rot0 = rotmat_f(*q.tolist())
+    ref = np.eye(eskf.N_STATES)
+    ref[0, 3] = ref[1, 4] = ref[2, 5] = dt
+    ref[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
+    ref[3:6, 12:15] = rot0 * -dt
+    ref[6:9, 9:12] = rot0 * -dt
+    if gyro_matrix_std:
+        rc = rot0 @ np.linalg.inv(np.eye(3) + f.gyro_matrix_estimate)
+        ref[6:9, eskf.IDX_GYRO_MATRIX] = (rc[:, :, None] * -th).reshape(3, 9)
+    np.testing.assert_allclose(f._f, ref, rtol=0, atol=1e-15)

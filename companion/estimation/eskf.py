@@ -100,6 +100,16 @@ IDX_GPS_LAG = 15
 IDX_GYRO_MATRIX = slice(16, 25)
 """The gyro's scale-factor and cross-axis error ``M`` (row-major, dimensionless): the part reads
 ``(I + M) w + b`` for a body rate ``w``."""
+_F_INDEX = np.array(
+    [r * N_STATES + c for r, c in ((0, 3), (1, 4), (2, 5))]
+    + [r * N_STATES + c for r in range(3, 6) for c in range(6, 9)]
+    + [r * N_STATES + c for r in range(3, 6) for c in range(12, 15)]
+    + [r * N_STATES + c for r in range(6, 9) for c in range(9, 12)]
+    + [r * N_STATES + c for r in range(6, 9) for c in range(IDX_GYRO_MATRIX.start,
+                                                            IDX_GYRO_MATRIX.stop)])
+"""Flat positions of the transition matrix's entries that change every period, in the order
+`Eskf._propagate_covariance` computes them (the gyro-matrix block last)."""
+_F_INDEX_NO_GM = _F_INDEX[:30].copy()
 FIXED_LAG_VAR = 1e-12
 """Variance held by a delay that is not estimated: uncoupled from every other state, so the
 covariance stays positive definite and nothing ever moves it."""
@@ -612,18 +622,34 @@ class Eskf:
         if dt <= 0.0:
             return
         f = self._f
-        f[0, 3] = f[1, 4] = f[2, 5] = dt
         fx, fy, fz = self._pend_dv_f
-        # d(dv)/d(dtheta) = -[dv_nav]x
-        f[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
-        rot0 = rotmat_f(*self._pend_q)
-        f[3:6, 12:15] = rot0 * -dt
-        f[6:9, 9:12] = rot0 * -dt
+        w, x, y, z = self._pend_q
+        rot0 = ((1 - 2 * (y * y + z * z)), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                2 * (x * y + w * z), (1 - 2 * (x * x + z * z)), 2 * (y * z - w * x),
+                2 * (x * z - w * y), 2 * (y * z + w * x), (1 - 2 * (x * x + y * y)))
+        m = -dt
+        r_dt = [c * m for c in rot0]
+        # the transition's varying entries, written in one call (each numpy call costs a few
+        # microseconds on the flight path): position/velocity dt; d(dv)/d(dtheta) = -[dv_nav]x;
+        # velocity/accelerometer bias and attitude/gyro bias -C dt
+        values = [dt, dt, dt, 0.0, fz, -fy, -fz, 0.0, fx, fy, -fx, 0.0, *r_dt, *r_dt]
         if self._gm_on:
             # d(dtheta)/dM: the rate error -C dM w, over the period's body rotation
-            rc = rot0 @ self._gm_inv
-            f[6:9, IDX_GYRO_MATRIX] = (rc[:, :, None] * -np.array(self._pend_dth_f)).reshape(3, 9)
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot0
+            c00, c01, c02, c10, c11, c12, c20, c21, c22 = self._gm_inv_f
+            rc = (r00 * c00 + r01 * c10 + r02 * c20, r00 * c01 + r01 * c11 + r02 * c21,
+                  r00 * c02 + r01 * c12 + r02 * c22,
+                  r10 * c00 + r11 * c10 + r12 * c20, r10 * c01 + r11 * c11 + r12 * c21,
+                  r10 * c02 + r11 * c12 + r12 * c22,
+                  r20 * c00 + r21 * c10 + r22 * c20, r20 * c01 + r21 * c11 + r22 * c21,
+                  r20 * c02 + r21 * c12 + r22 * c22)
+            t0, t1, t2 = self._pend_dth_f
+            n0, n1, n2 = -t0, -t1, -t2
+            values += [v for c in rc for v in (c * n0, c * n1, c * n2)]
             self._pend_dth_f = (0.0, 0.0, 0.0)
+            f.put(_F_INDEX, values)
+        else:
+            f.put(_F_INDEX_NO_GM, values)
         p = f @ self._p @ f.T
         p += self._process_noise(dt)
         if self._pend_temp_c > 0.0:
@@ -1048,13 +1074,11 @@ class Eskf:
             # only with max_gyro_matrix set near 1: a singular I + M is no estimate, drop it
             self._gm = np.zeros((3, 3))
             self._gm_inv_f = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-            self._gm_inv = np.eye(3)
             return
         inv = (c0 / det, (c * h - b * i) / det, (b * f - c * e) / det,
                c1 / det, (a * i - c * g) / det, (c * d - a * f) / det,
                c2 / det, (b * g - a * h) / det, (a * e - b * d) / det)
         self._gm_inv_f = inv
-        self._gm_inv = np.array(inv).reshape(3, 3)
 
     @property
     def gyro_matrix_estimate(self) -> FloatArray:
