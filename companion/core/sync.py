@@ -10,6 +10,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Sized
 from typing import Generic, TypeVar
 
 from companion.core.clock import Clock
@@ -18,6 +19,24 @@ T = TypeVar("T")
 
 _HOST = Clock()
 """The host's own time (scale 1): what a wait without a clock is measured in."""
+
+
+def _waiters_of(cond: threading.Condition) -> Sized:
+    """The threads blocked in `cond.wait` (CPython keeps them in `Condition._waiters`), so a
+    writer can skip `notify` when nobody waits: a notify is a few Python-level calls, paid
+    at every IMU sample, and in a lockstep flight no OS thread ever waits on a condition
+    (the scheduler re-tests every waiter's predicate). Without that attribute (another
+    Python), an always-true stand-in keeps every notify."""
+    waiters = getattr(cond, "_waiters", None)
+    return waiters if isinstance(waiters, deque) else _ALWAYS
+
+
+class _Always:
+    def __len__(self) -> int:
+        return 1
+
+
+_ALWAYS = _Always()
 
 
 class DataSlot(Generic[T]):
@@ -65,14 +84,16 @@ class WaitableSlot(DataSlot[T]):
     def __init__(self, initial: T | None = None) -> None:
         super().__init__(initial)
         self._cond = threading.Condition(self._lock)
+        self._waiters = _waiters_of(self._cond)
 
     def write(self, value: T) -> None:
         stamp = time.monotonic_ns()
-        with self._cond:
+        with self._lock:  # the condition's own lock, without Condition's Python-level enter
             self._value = value
             self._version += 1
             self._stamp_ns = stamp
-            self._cond.notify_all()
+            if self._waiters:
+                self._cond.notify_all()
 
     def wait_newer(self, seen_version: int, timeout_s: float,
                    clock: Clock | None = None) -> tuple[T | None, int] | None:
@@ -106,13 +127,15 @@ class MessageQueue(Generic[T]):
         self._capacity = capacity
         self._drop_oldest = drop_oldest
         self._items: deque[T] = deque()
-        self._cond = threading.Condition(threading.Lock())
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._waiters = _waiters_of(self._cond)
         self.dropped = 0
         self.put_count = 0
 
     def put(self, item: T) -> bool:
         """Enqueue without blocking; False when the item (or an older one) was dropped."""
-        with self._cond:
+        with self._lock:
             self.put_count += 1
             if len(self._items) >= self._capacity:
                 self.dropped += 1
@@ -120,10 +143,12 @@ class MessageQueue(Generic[T]):
                     return False
                 self._items.popleft()
                 self._items.append(item)
-                self._cond.notify()
+                if self._waiters:
+                    self._cond.notify()
                 return False
             self._items.append(item)
-            self._cond.notify()
+            if self._waiters:
+                self._cond.notify()
             return True
 
     def get_nowait(self) -> T | None:
