@@ -32,8 +32,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from companion.core.mathutil import clamp
-
 if TYPE_CHECKING:
     from companion.sim.devices import ImuSimConfig
 
@@ -237,14 +235,18 @@ class ImuErrorModel:
             theta = self.shaft_angle_rad = (self.shaft_angle_rad + 2.0 * math.pi * shaft_hz
                                             * self.dt_s) % (2.0 * math.pi)
             load = (rpm / cfg.vib_ref_rpm) ** 2
-            v = [0.0] * 6
-            for m, _rel, amp_cos, amp_sin in self._vib:
+            v0 = v1 = v2 = v3 = v4 = v5 = 0.0
+            for m, _rel, k, j in self._vib:
                 gain = load * dlpf_gain(m * shaft_hz, cfg.dlpf_hz)
                 s = math.sin(m * theta) * gain
                 c = math.cos(m * theta) * gain
-                for i in range(6):
-                    v[i] += amp_cos[i] * s + amp_sin[i] * c
-            self.vibration = vib = v
+                v0 += k[0] * s + j[0] * c
+                v1 += k[1] * s + j[1] * c
+                v2 += k[2] * s + j[2] * c
+                v3 += k[3] * s + j[3] * c
+                v4 += k[4] * s + j[4] * c
+                v5 += k[5] * s + j[5] * c
+            self.vibration = vib = [v0, v1, v2, v3, v4, v5]
         elif self._vib_on:
             self.vibration = vib = [0.0] * 6
         a0 += vib[0]
@@ -286,21 +288,20 @@ class ImuErrorModel:
             + d[11] * an,
         ]
         if self._g_sens_on:
-            k = self.g_sensitivity
-            for i in range(3):
-                out[i] += k[i][0] * a0 + k[i][1] * a1 + k[i][2] * a2
+            k0, k1, k2 = self.g_sensitivity
+            out[0] += k0[0] * a0 + k0[1] * a1 + k0[2] * a2
+            out[1] += k1[0] * a0 + k1[1] * a1 + k1[2] * a2
+            out[2] += k2[0] * a0 + k2[1] * a1 + k2[2] * a2
         if self._clip_on:
             gr = cfg.gyro_range_rad_s
             ar = cfg.accel_range_m_s2
-            for i in range(3):
-                out[i] = clamp(out[i], -gr, gr)
-                out[i + 3] = clamp(out[i + 3], -ar, ar)
+            out[0:3] = [-gr if c < -gr else gr if c > gr else c for c in out[0:3]]
+            out[3:6] = [-ar if c < -ar else ar if c > ar else c for c in out[3:6]]
         lsb = cfg.gyro_lsb_rad_s
+        floor = math.floor
         if lsb:
-            for i in range(3):
-                out[i] = math.floor(out[i] / lsb + 0.5) * lsb
+            out[0:3] = [floor(c / lsb + 0.5) * lsb for c in out[0:3]]
         lsb = cfg.accel_lsb_m_s2
         if lsb:
-            for i in range(3, 6):
-                out[i] = math.floor(out[i] / lsb + 0.5) * lsb
+            out[3:6] = [floor(c / lsb + 0.5) * lsb for c in out[3:6]]
         return out
