@@ -87,6 +87,7 @@ from companion.estimation.quat import (
 
 log = logging.getLogger(__name__)
 
+Vec3f = tuple[float, float, float]
 N_STATES = 25
 IDX_POS = slice(0, 3)
 IDX_VEL = slice(3, 6)
@@ -729,11 +730,11 @@ class Eskf:
             return UpdateResult(False, "bad_input")
         self._propagate_covariance()
         latency += self._lag
-        past = self._state_at(self._t - latency)
+        past = self._state_at_f(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
         pos_then, vel_then, _ = past
-        acc_then = self._mean_accel_at(self._t - latency) if self._lag_on else None
+        acc_then = self._mean_accel_at_f(self._t - latency) if self._lag_on else None
         self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
 
         speed = math.hypot(z_vel[0], z_vel[1])
@@ -741,20 +742,36 @@ class Eskf:
             self._align_yaw(math.atan2(z_vel[1], z_vel[0]), z_pos, z_vel, latency, p_std, v_std)
             return UpdateResult(True, "yaw_aligned")
 
-        y = np.concatenate((z_pos - pos_then, z_vel - vel_then))
+        # y, H and R assembled from floats, H's varying entries written with one call: the
+        # same values as the array forms, without a dozen small numpy calls per fix
+        zp, zv = z_pos.tolist(), z_vel.tolist()
+        innovation = (zp[0] - pos_then[0], zp[1] - pos_then[1], zp[2] - pos_then[2],
+                      zv[0] - vel_then[0], zv[1] - vel_then[1], zv[2] - vel_then[2])
+        y = np.array(innovation)
         h = _H_GPS.copy()
-        h[0, 3] = h[1, 4] = h[2, 5] = -latency
+        m = -latency
         if latency > 0.0:
             fx, fy, fz = (c * latency for c in self._f_nav_f)
-            h[3:6, 6:9] = ((0.0, -fz, fy), (fz, 0.0, -fx), (-fy, fx, 0.0))
-            h[3:6, 12:15] = rotmat_f(*self._q) * latency
+            w, x, yq, z = self._q
+            rot = ((1 - 2 * (yq * yq + z * z)), 2 * (x * yq - w * z), 2 * (x * z + w * yq),
+                   2 * (x * yq + w * z), (1 - 2 * (x * x + z * z)), 2 * (yq * z - w * x),
+                   2 * (x * z - w * yq), 2 * (yq * z + w * x), (1 - 2 * (x * x + yq * yq)))
+            values = [m, m, m, 0.0, -fz, fy, fz, 0.0, -fx, -fy, fx, 0.0,
+                      *[c * latency for c in rot]]
+        else:
+            values = [m, m, m, *_H_GPS_NO_LATENCY]
         if acc_then is not None:
             # z = x(t - lag): a longer delay reads an older position and velocity
-            h[0:3, IDX_GPS_LAG] = -vel_then
-            h[3:6, IDX_GPS_LAG] = -acc_then
-        r = np.diag(np.concatenate((p_std**2, v_std**2)))
+            values += [-vel_then[0], -vel_then[1], -vel_then[2],
+                       -acc_then[0], -acc_then[1], -acc_then[2]]
+            h.put(_H_INDEX, values)
+        else:
+            h.put(_H_INDEX_NO_LAG, values)
+        ps, vs = p_std.tolist(), v_std.tolist()
+        r = np.diag([ps[0] * ps[0], ps[1] * ps[1], ps[2] * ps[2],
+                     vs[0] * vs[0], vs[1] * vs[1], vs[2] * vs[2]])
         result = self._kalman_update(y, h, r, self.gps_gate)
-        self._last_gps_innovation = tuple(y.tolist())
+        self._last_gps_innovation = innovation
         self._last_gps_nis = result.nis
         if result.accepted:
             self._gps_rejections = 0
@@ -1095,18 +1112,28 @@ class Eskf:
 
     def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
         """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
+        found = self._state_at_f(t_s)
+        if found is None:
+            return None
+        return np.array(found[0]), np.array(found[1]), found[2]
+
+    def _state_at_f(self, t_s: float) -> tuple[Vec3f, Vec3f, tuple[float, ...]] | None:
+        """:meth:`_state_at` as floats (the GPS update's path); the interpolation is the
+        array form's, element by element."""
         if t_s >= self._t - 1e-9 or not self._history:
-            return self._pos.copy(), self._vel.copy(), self._q
+            return self._pos_f, self._vel_f, self._q
         newer = None
         for entry in reversed(self._history):
             if entry[0] <= t_s:
                 if newer is None:
-                    return np.array(entry[1]), np.array(entry[2]), entry[3]
+                    return entry[1], entry[2], entry[3]
                 t0, t1 = entry[0], newer[0]
                 a = (t_s - t0) / (t1 - t0) if t1 > t0 else 0.0
-                pos0, vel0 = np.array(entry[1]), np.array(entry[2])
-                pos = pos0 + a * (np.array(newer[1]) - pos0)
-                vel = vel0 + a * (np.array(newer[2]) - vel0)
+                p0, v0, p1, v1 = entry[1], entry[2], newer[1], newer[2]
+                pos = (p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]),
+                       p0[2] + a * (p1[2] - p0[2]))
+                vel = (v0[0] + a * (v1[0] - v0[0]), v0[1] + a * (v1[1] - v0[1]),
+                       v0[2] + a * (v1[2] - v0[2]))
                 return pos, vel, (newer[3] if a >= 0.5 else entry[3])
             newer = entry
         return None
@@ -1118,12 +1145,18 @@ class Eskf:
         (0.5 m/s^2 at 100 Hz for a consumer part), and as the delay's Jacobian that noise would
         make the delay look observable in straight flight, where it is not.
         """
-        lo = self._state_at(t_s - half_window_s)
-        hi = self._state_at(min(t_s + half_window_s, self._t))
+        return np.array(self._mean_accel_at_f(t_s, half_window_s))
+
+    def _mean_accel_at_f(self, t_s: float, half_window_s: float = 0.05) -> Vec3f:
+        lo = self._state_at_f(t_s - half_window_s)
+        hi = self._state_at_f(min(t_s + half_window_s, self._t))
         if lo is None or hi is None:
-            return np.zeros(3)
+            return (0.0, 0.0, 0.0)
         span = min(t_s + half_window_s, self._t) - (t_s - half_window_s)
-        return (hi[1] - lo[1]) / span if span > 1e-6 else np.zeros(3)
+        if not span > 1e-6:
+            return (0.0, 0.0, 0.0)
+        v0, v1 = lo[1], hi[1]
+        return ((v1[0] - v0[0]) / span, (v1[1] - v0[1]) / span, (v1[2] - v0[2]) / span)
 
     # -- outputs -------------------------------------------------------------------------------
 
@@ -1248,6 +1281,16 @@ _H_GPS[0:3, 0:3] = np.eye(3)
 _H_GPS[3:6, 3:6] = np.eye(3)
 _H_GPS.flags.writeable = False
 """The GPS measurement matrix's constant part (position and velocity observed directly)."""
+_H_INDEX = np.array(
+    [r * N_STATES + c for r, c in ((0, 3), (1, 4), (2, 5))]
+    + [r * N_STATES + c for r in range(3, 6) for c in range(6, 9)]
+    + [r * N_STATES + c for r in range(3, 6) for c in range(12, 15)]
+    + [r * N_STATES + IDX_GPS_LAG for r in range(6)])
+"""Flat positions of the GPS measurement matrix's entries that change with each fix, in the
+order `Eskf.update_gps` computes them (the delay column last)."""
+_H_INDEX_NO_LAG = _H_INDEX[:21].copy()
+_H_GPS_NO_LATENCY = (0.0,) * 18
+"""The attitude and accelerometer-bias entries when the fix has no latency."""
 
 
 def _floats3(value: object) -> tuple[float, float, float] | None:
