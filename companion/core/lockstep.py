@@ -52,8 +52,8 @@ class LockstepDeadlock(LockstepError):
 
 
 class _Task:
-    __slots__ = ("deadline_ns", "done", "glet", "key", "name", "pending", "ready", "started",
-                 "stop")
+    __slots__ = ("deadline_ns", "done", "glet", "key", "name", "pending", "ready", "spent_ns",
+                 "started", "stop")
 
     def __init__(self, name: str, key: tuple[int, int]) -> None:
         self.name = name
@@ -65,6 +65,7 @@ class _Task:
         self.deadline_ns: int | None = None
         self.stop: threading.Event | None = None
         self.pending: BaseException | None = None
+        self.spent_ns = 0  # host time spent running this task
 
 
 class _GreenWorker:
@@ -232,24 +233,26 @@ class LockstepClock(Clock):
 
         worker = self.start_thread(entry, (), "main", MAIN_PRIORITY)
         main_task: _Task = worker._task  # type: ignore[attr-defined]
-        host_ns = self.host_ns
+        next_ready = self._next_ready
+        switches = 0
         try:
             while not main_task.done:
-                task = self._next_ready()
+                task = next_ready()
                 if task is None:
                     self._advance()
                     continue
                 task.started = True
                 self._current = task
-                self.switches += 1
+                switches += 1
                 t0 = perf_counter_ns()
                 task.glet.switch()
-                spent = perf_counter_ns() - t0
-                host_ns[task.name] = host_ns.get(task.name, 0) + spent
+                task.spent_ns += perf_counter_ns() - t0
                 self._current = None
                 if task.done:
                     self._tasks.remove(task)
+                    self._account(task)
         finally:
+            self.switches += switches
             for task in list(self._tasks):  # tasks left waiting (abandoned): end them quietly
                 if task.glet is not None and not task.done and task.started:
                     self._current = task
@@ -258,22 +261,30 @@ class LockstepClock(Clock):
                     except LockstepError:
                         pass
                     self._current = None
+                self._account(task)
             self._tasks.clear()
             self._hub = None
         if "error" in result:
             raise result["error"]
         return result.get("value")
 
+    def _account(self, task: _Task) -> None:
+        """Fold an ended (or abandoned) task's host time into `host_ns`, by name."""
+        if task.spent_ns:
+            self.host_ns[task.name] = self.host_ns.get(task.name, 0) + task.spent_ns
+            task.spent_ns = 0
+
     def _next_ready(self) -> _Task | None:
+        # the first task, in priority order, with any reason to run; the cheapest tests first
         now = self.now_ns
         for task in self._tasks:
+            deadline = task.deadline_ns
+            if deadline is not None and deadline <= now:
+                return task
             if not task.started or task.pending is not None:
                 return task
             stop = task.stop
             if stop is not None and stop.is_set():
-                return task
-            deadline = task.deadline_ns
-            if deadline is not None and deadline <= now:
                 return task
             ready = task.ready
             if ready is not None and ready():
