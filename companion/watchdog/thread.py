@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ from companion.watchdog.task import RestartType, Task
 log = logging.getLogger(__name__)
 
 PERIOD_RING = 4096  # cycle-period samples kept per thread for jitter statistics
+RATE_RING = 256  # (clock time, cycles) samples the measured rate is taken over
 NOTICE_INTERVAL_S = 5.0  # flight time between two NOTICE events of one thread
 
 __all__ = ["ManagedThread", "RestartType", "RuntimeContext", "Task", "ThreadInterrupted",
@@ -147,11 +149,10 @@ class ManagedThread:
         self._step_total_ns = 0
         self._step_count = 0
         self._step_worst_ns = 0
-        self._period_ring = [0] * PERIOD_RING
-        self._period_n = 0
+        # bounded rings (one C-level append per cycle, at every thread's rate)
+        self._periods: deque[int] = deque(maxlen=PERIOD_RING)
         self._last_cycle_start_ns = 0
-        self._rate_ring: list[tuple[int, int]] = [(0, 0)] * 256  # (clock ns, cycles) samples
-        self._rate_n = 0
+        self._rates: deque[tuple[int, int]] = deque(maxlen=RATE_RING)  # (clock ns, cycles)
         self.work_t0_ns = 0  # set by device-paced steps when data arrived (excludes the wait)
         self.notices = 0
         self._on_notice: Callable[[str], None] | None = None
@@ -259,18 +260,16 @@ class ManagedThread:
 
     def period_samples_ns(self) -> list[int]:
         """Recent cycle-to-cycle start intervals (host ns), oldest first."""
-        n = min(self._period_n, PERIOD_RING)
-        start = self._period_n - n
-        return [self._period_ring[i % PERIOD_RING] for i in range(start, self._period_n)]
+        return list(self._periods)
 
     def measured_rate_hz(self) -> float:
         """Cycles per second of clock time over the last 256 steps."""
-        n = min(self._rate_n, len(self._rate_ring))
-        if n < 2:
+        rates = self._rates
+        try:  # the worker appends meanwhile, and a statistics reset may empty the ring
+            t_old, c_old = rates[0]
+            t_new, c_new = rates[-1]
+        except IndexError:
             return 0.0
-        size = len(self._rate_ring)
-        t_old, c_old = self._rate_ring[(self._rate_n - n) % size]
-        t_new, c_new = self._rate_ring[(self._rate_n - 1) % size]
         if t_new <= t_old:
             return 0.0
         return (c_new - c_old) / ((t_new - t_old) / 1e9)
@@ -308,8 +307,8 @@ class ManagedThread:
         self._step_total_ns = 0
         self._step_count = 0
         self._step_worst_ns = 0
-        self._period_n = 0
-        self._rate_n = 0
+        self._periods.clear()
+        self._rates.clear()
         self.missed_deadlines = 0
         self.overruns = 0
 
@@ -466,9 +465,9 @@ class ManagedThread:
                        clock_ns: int) -> None:
         """`t0_ns` and `step_ns` in host time (what the step cost); `clock_ns` the runtime's
         time at the end of the cycle, from which the rate is measured (exact in lockstep)."""
-        if self._last_cycle_start_ns:
-            self._period_ring[self._period_n % PERIOD_RING] = t0_ns - self._last_cycle_start_ns
-            self._period_n += 1
+        last = self._last_cycle_start_ns
+        if last:
+            self._periods.append(t0_ns - last)
         self._last_cycle_start_ns = t0_ns
         self._step_total_ns += step_ns
         self._step_count += 1
@@ -476,6 +475,5 @@ class ManagedThread:
             self._step_worst_ns = step_ns
         if step_ns > budget_ns:
             self.overruns += 1
-        self.cycles += count
-        self._rate_ring[self._rate_n % len(self._rate_ring)] = (clock_ns, self.cycles)
-        self._rate_n += 1
+        cycles = self.cycles = self.cycles + count
+        self._rates.append((clock_ns, cycles))
