@@ -82,6 +82,7 @@ from companion.estimation.quat import (
     quat_to_euler_f,
     roll_pitch_from_accel,
     rotmat_f,
+    rotmat_flat_f,
     wrap_pi,
 )
 
@@ -624,10 +625,7 @@ class Eskf:
             return
         f = self._f
         fx, fy, fz = self._pend_dv_f
-        w, x, y, z = self._pend_q
-        rot0 = ((1 - 2 * (y * y + z * z)), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                2 * (x * y + w * z), (1 - 2 * (x * x + z * z)), 2 * (y * z - w * x),
-                2 * (x * z - w * y), 2 * (y * z + w * x), (1 - 2 * (x * x + y * y)))
+        rot0 = rotmat_flat_f(*self._pend_q)
         m = -dt
         r_dt = [c * m for c in rot0]
         # the transition's varying entries, written in one call (each numpy call costs a few
@@ -734,7 +732,7 @@ class Eskf:
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
         pos_then, vel_then, _ = past
-        acc_then = self._mean_accel_at_f(self._t - latency) if self._lag_on else None
+        acc_then = self._mean_accel_at(self._t - latency) if self._lag_on else None
         self._last_gps = (self._t, z_pos + z_vel * latency, z_vel)
 
         speed = math.hypot(z_vel[0], z_vel[1])
@@ -752,12 +750,8 @@ class Eskf:
         m = -latency
         if latency > 0.0:
             fx, fy, fz = (c * latency for c in self._f_nav_f)
-            w, x, yq, z = self._q
-            rot = ((1 - 2 * (yq * yq + z * z)), 2 * (x * yq - w * z), 2 * (x * z + w * yq),
-                   2 * (x * yq + w * z), (1 - 2 * (x * x + z * z)), 2 * (yq * z - w * x),
-                   2 * (x * z - w * yq), 2 * (yq * z + w * x), (1 - 2 * (x * x + yq * yq)))
             values = [m, m, m, 0.0, -fz, fy, fz, 0.0, -fx, -fy, fx, 0.0,
-                      *[c * latency for c in rot]]
+                      *[c * latency for c in rotmat_flat_f(*self._q)]]
         else:
             values = [m, m, m, *_H_GPS_NO_LATENCY]
         if acc_then is not None:
@@ -1138,16 +1132,13 @@ class Eskf:
             newer = entry
         return None
 
-    def _mean_accel_at(self, t_s: float, half_window_s: float = 0.05) -> FloatArray:
+    def _mean_accel_at(self, t_s: float, half_window_s: float = 0.05) -> Vec3f:
         """NED acceleration around ``t_s`` as a velocity difference over +-``half_window_s``.
 
         Not the sample's own acceleration: one sample carries the accelerometer's white noise
         (0.5 m/s^2 at 100 Hz for a consumer part), and as the delay's Jacobian that noise would
         make the delay look observable in straight flight, where it is not.
         """
-        return np.array(self._mean_accel_at_f(t_s, half_window_s))
-
-    def _mean_accel_at_f(self, t_s: float, half_window_s: float = 0.05) -> Vec3f:
         lo = self._state_at_f(t_s - half_window_s)
         hi = self._state_at_f(min(t_s + half_window_s, self._t))
         if lo is None or hi is None:
@@ -1211,8 +1202,8 @@ class Eskf:
 
     @property
     def gps_lag_estimate_std_s(self) -> float:
-        """The 1-sigma uncertainty of :attr:`gps_lag_estimate_s` (s), as :meth:`state` has it,
-        without :meth:`state`'s array copies (the flight thread logs it at every fix)."""
+        """The 1-sigma uncertainty of :attr:`gps_lag_estimate_s` (s), :meth:`state`'s
+        ``gps_lag_std_s``, without its array copies (the flight thread logs it at every fix)."""
         return math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0))
 
     @property
@@ -1248,7 +1239,7 @@ class Eskf:
             gps_rejections_in_row=self._gps_rejections,
             rejected_inputs=self.rejected_inputs,
             gps_lag_s=self._lag,
-            gps_lag_std_s=math.sqrt(max(float(self._p[IDX_GPS_LAG, IDX_GPS_LAG]), 0.0)),
+            gps_lag_std_s=self.gps_lag_estimate_std_s,
             gyro_matrix=self._gm.copy(),
         )
 

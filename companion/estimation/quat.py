@@ -214,15 +214,17 @@ def quat_normalise_f(
     return w / n, x / n, y / n, z / n
 
 
+def rotmat_flat_f(w: float, x: float, y: float, z: float) -> tuple[float, ...]:
+    """:func:`rotmat_f`'s nine elements, row-major, as floats: for callers that write them
+    into a larger matrix or multiply them out themselves, without an array per call."""
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
 def rotmat_f(w: float, x: float, y: float, z: float) -> FloatArray:
     """Rotation matrix (body to NED) of a unit quaternion given as floats."""
-    return np.array(
-        (
-            (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-        )
-    )
+    return np.array(rotmat_flat_f(w, x, y, z)).reshape(3, 3)
 
 
 def quat_to_euler_f(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
