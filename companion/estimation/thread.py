@@ -74,11 +74,12 @@ class EstimatorThread(ManagedThread):
                         "up: about 1 deg/s over its first minutes)."),
             float_param(f"{p}_AB_RW", 1e-3, 1e-7, 0.1, "m/s^2/rts",
                         "Accelerometer bias random walk."),
-            float_param(f"{p}_GS_STD", 0.01, 0.0, 0.1, "",
+            float_param(f"{p}_GS_STD", 0.015, 0.0, 0.1, "",
                         "1-sigma of each element of the gyro's scale-factor and cross-axis "
                         "error before the flight (fraction; a consumer part's +-3 % "
-                        "tolerance is about 0.01): the filter estimates the 3x3 error in "
-                        "turns. 0 takes the gyro's scale as exact."),
+                        "tolerance is about 0.01 at 1 sigma, and the prior is kept wider "
+                        "than that): the filter estimates the 3x3 error in turns. 0 takes "
+                        "the gyro's scale as exact."),
             float_param(f"{p}_GB_TEMP", 5e-4, 0.0, 0.01, "rad/s/degC",
                         "Gyro bias change per degree of IMU temperature, 1-sigma (a typical "
                         "consumer MEMS part: 0.03 deg/s/C): while the part warms up the bias "
