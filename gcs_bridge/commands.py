@@ -7,6 +7,12 @@ means done. MAVSDK fills the parameters it does not use with NaN; they read as "
 
 Restarting one thread has no MAVLink command of its own: it is MAV_CMD_USER_1 (31010) with
 param1 = thread id (the ids the thread status shows as `T<id>_...`).
+
+MAV_CMD_PREFLIGHT_CALIBRATION with param5 = 2 (QGroundControl's "Level Horizon", MAVProxy's
+``ahrstrim``) is the level calibration: the estimator reads two seconds of IMU and sets
+`EST_TRIM_ROLL/PITCH`; the ACK comes when it is done, with a STATUSTEXT giving the trims or
+why it refused. Other calibrations (gyro, compass, six-position accelerometer, baro...) are
+UNSUPPORTED: the estimator takes the gyro bias itself at every start.
 """
 
 from __future__ import annotations
@@ -191,6 +197,8 @@ class CommandHandler:
             return self._reboot_shutdown(link, cmd)
         if c == CMD_RESTART_THREAD:
             return self._restart_thread(link, cmd)
+        if c == mavlink.MAV_CMD_PREFLIGHT_CALIBRATION:
+            return self._calibrate(link, cmd)
         if c in (mavlink.MAV_CMD_LOGGING_START, mavlink.MAV_CMD_LOGGING_STOP):
             return self._logging(link, cmd, c == mavlink.MAV_CMD_LOGGING_START)
         return UNSUPPORTED
@@ -228,6 +236,18 @@ class CommandHandler:
             return DENIED
         return self._post_manager(link, cmd, ManagerCommand("restart_thread", int(tid)))
 
+    def _calibrate(self, link: CommandLink, cmd: Command) -> int | None:
+        # param1 gyro, 2 magnetometer, 3 ground pressure, 4 radio, 5 accelerometer (2: board
+        # level), 6 compass/motor, 7 ESC or airspeed; 0 everywhere asks for nothing
+        asked = {i: v for i in range(1, 8) if (v := cmd.p(i, 0.0)) not in (None, 0.0)}
+        if not asked:
+            return ACCEPTED
+        if asked != {5: 2.0}:
+            link.notify(mavlink.MAV_SEVERITY_WARNING,
+                        "calibration: only the level calibration (param5 = 2) is supported")
+            return UNSUPPORTED
+        return self._post_manager(link, cmd, ManagerCommand("calibrate_level"))
+
     def _post_manager(self, link: CommandLink, cmd: Command, mc: ManagerCommand) -> int | None:
         key = (link.index, cmd.source[0], cmd.source[1], cmd.command)
 
@@ -237,6 +257,8 @@ class CommandHandler:
             link.post([ack(cmd, result)])
             if not ok:
                 link.notify(mavlink.MAV_SEVERITY_WARNING, f"command {cmd.command}: {reason}")
+            elif reason:  # what a long-running command found (a calibration's result)
+                link.notify(mavlink.MAV_SEVERITY_INFO, reason)
 
         posted = ManagerCommand(mc.kind, mc.thread, mc.reason, reply)
         if not self.core.manager.post(posted):

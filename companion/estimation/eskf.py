@@ -340,6 +340,12 @@ class Eskf:
         self.max_accel_m_s2 = float(max_accel_m_s2)
         self.pd_check_every = int(pd_check_every)
         self.gravity_m_s2 = float(gravity_m_s2)
+        self.trim_bias_tilt = False
+        """Report the attitude turned by the tilt the accelerometer bias estimate amounts to
+        (``b_a`` over g about x and y). Set when the samples come through a level calibration's
+        trim (``EST_TRIM_BIAS``): that trim took the bias at calibration for a board tilt, so
+        the filter's frame is the airframe turned by the bias's tilt, which the bias states
+        learn in flight. Only what is reported turns; the filter's own state does not."""
 
         self._q_cache: dict[float, FloatArray] = {}
         self._f = np.eye(N_STATES)
@@ -1212,8 +1218,9 @@ class Eskf:
         return list(self._fault_log)
 
     def state(self) -> EskfState:
-        q = np.array(self._q)
-        roll, pitch, yaw = quat_to_euler_f(*self._q)
+        q_f = self._reported_q()
+        q = np.array(q_f)
+        roll, pitch, yaw = quat_to_euler_f(*q_f)
         diag = np.diagonal(self._p).copy()
         if not self._yaw_aligned:
             diag[IDX_YAW] = math.pi**2 / 3.0
@@ -1250,7 +1257,7 @@ class Eskf:
         those arrays straight back into tuples, at 100 Hz or more. This reads the same values
         without the copies; ``cov_diag`` follows :meth:`state`'s convention for the heading.
         """
-        w, x, y, z = q = self._q
+        w, x, y, z = q = self._reported_q() if self.trim_bias_tilt else self._q
         roll, pitch, yaw = quat_to_euler_f(w, x, y, z)
         diag = self._p.diagonal().tolist()
         if not self._yaw_aligned:
@@ -1260,6 +1267,27 @@ class Eskf:
                           self._last_gps_innovation,
                           self._initialised and self._yaw_aligned, self.faults,
                           self.last_fault_reason)
+
+    def turn_body_axes(self, dq: tuple[float, float, float, float]) -> None:
+        """The samples' axes are turned by ``dq`` from now on (new axes = ``dq`` old axes: a
+        new level trim): the attitude and both biases follow, so the estimate stays the same
+        aircraft's. The gyro matrix and the covariance keep their axes (a trim moves by a
+        fraction of a degree; a difference that large is second order)."""
+        w, x, y, z = quat_multiply_f(*self._q, dq[0], -dq[1], -dq[2], -dq[3])
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        self._q = (w / n, x / n, y / n, z / n)
+        r = rotmat_f(*dq)
+        self._set_biases(r @ self._bg, r @ self._ba)
+
+    def _reported_q(self) -> tuple[float, float, float, float]:
+        """The attitude as reported (`trim_bias_tilt`): the filter's quaternion times the
+        body-axes rotation (-b_y / g, b_x / g, 0)."""
+        w, x, y, z = self._q
+        if not self.trim_bias_tilt:
+            return (w, x, y, z)
+        g = self.gravity_m_s2
+        bx, by, _bz = self._ba_f
+        return quat_multiply_f(w, x, y, z, *quat_from_rotvec_f(-by / g, bx / g, 0.0))
 
     @property
     def covariance(self) -> FloatArray:

@@ -21,6 +21,7 @@ import numpy as np
 from companion.core.geo import NedFrame
 from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.estimation.eskf import Eskf, UpdateResult
+from companion.estimation.quat import quat_from_euler, quat_multiply_f
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,18 @@ every measurement). In the realistic SITL turns (tuning seeds 101 and 102, both 
 air and 8 m/s wind, 150 s) 20, 40 and 50 ms gave the same inclination RMSE (0.374, 0.373,
 0.373 deg); earlier, with the simple sensors, 10 and 20 ms had (0.180 deg). 40 ms pays for the
 gyro scale-factor and cross-axis states at 100 Hz."""
+
+
+def board_to_body(roll_rad: float, pitch_rad: float,
+                  yaw_rad: float) -> tuple[tuple[float, float, float], ...]:
+    """The rotation that turns IMU board axes into airframe axes for the trims
+    (`TRIM_ROLL/PITCH/YAW`): the board is the airframe turned by yaw, pitch, roll."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return ((cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy),
+            (cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy),
+            (-sp, sr * cp, cr * cp))
 
 
 class EstimatorCore:
@@ -85,15 +98,24 @@ class EstimatorCore:
         if roll == pitch == yaw == 0.0:
             self._board_to_body = None
             return
-        cr, sr = math.cos(roll), math.sin(roll)
-        cp, sp = math.cos(pitch), math.sin(pitch)
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        # board axes -> airframe axes: the board is the airframe turned by yaw, pitch, roll
-        self._board_to_body = (
-            (cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy),
-            (cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy),
-            (-sp, sr * cp, cr * cp),
-        )
+        self._board_to_body = board_to_body(roll, pitch, yaw)
+
+    def _trim_angles(self) -> tuple[float, float, float]:
+        return (self.p.get("TRIM_ROLL", 0.0), self.p.get("TRIM_PITCH", 0.0),
+                self.p.get("TRIM_YAW", 0.0))
+
+    def _trim_changed(self, before: tuple[float, float, float]) -> None:
+        """New trims (a level calibration): samples averaged under the old ones no longer
+        level the filter, and a running filter's attitude and biases turn with the axes."""
+        if self.filter is None:
+            self._gyro.clear()
+            self._accel.clear()
+            self._first_t_ns = None
+            return
+        ow, ox, oy, oz = (float(v) for v in quat_from_euler(*before))
+        nw, nx, ny, nz = (float(v) for v in quat_from_euler(*self._trim_angles()))
+        dq = quat_multiply_f(nw, nx, ny, nz, ow, -ox, -oy, -oz)
+        self.filter.turn_body_axes(dq)
 
     def _to_body(self, samples: Sequence[ImuSample]) -> Sequence[ImuSample]:
         m = self._board_to_body
@@ -128,18 +150,30 @@ class EstimatorCore:
         if moving:
             kwargs.update(init_tilt_std_rad=0.6, init_gyro_bias_std_rad_s=0.02)
         kwargs.update(self.eskf_kwargs)
-        return Eskf(**kwargs)
+        f = Eskf(**kwargs)
+        f.trim_bias_tilt = self._trim_bias_tilt()
+        return f
+
+    def _trim_bias_tilt(self) -> bool:
+        """Whether the reported attitude gives back the bias a level calibration took for a
+        tilt (`TRIM_BIAS` with a roll or pitch trim set; companion.estimation.level)."""
+        return bool(self.p.get("TRIM_BIAS", 0.0)) and (
+            self.p.get("TRIM_ROLL", 0.0) != 0.0 or self.p.get("TRIM_PITCH", 0.0) != 0.0)
 
     def update_params(self, params: Mapping[str, float]) -> None:
         """New parameter values; noise densities apply from the next prediction, a new GPS
         delay or delay uncertainty restarts the delay estimate from it."""
         lag_before = (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD"))
+        trim_before = self._trim_angles()
         self.p.update({k: float(v) for k, v in params.items()})
         self._set_trim()
+        if self._trim_angles() != trim_before:
+            self._trim_changed(trim_before)
         f = self.filter
         if f is not None and lag_before != (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD")):
             f.set_gps_lag(self.p["GPS_LAG"], self.p.get("GPS_LAGSD", 0.0))
         if f is not None:
+            f.trim_bias_tilt = self._trim_bias_tilt()
             f.gyro_noise_rad_s_rt_hz = self.p["GYR_NSD"]
             f.accel_noise_m_s2_rt_hz = self.p["ACC_NSD"]
             f.gyro_bias_rw_rad_s_rt_s = self.p["GB_RW"]

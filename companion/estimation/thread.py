@@ -8,19 +8,27 @@ goes to the estimator slot (control reads it), the log and the bridges.
 
 A filter divergence is repaired inside the filter and counted as an estimator fault
 (`faults`); it never raises, so it never costs a thread restart.
+
+Level calibration (the manager command ``calibrate_level``, from MAV_CMD_PREFLIGHT_CALIBRATION
+with param5 = 2, QGroundControl's "Level Horizon"): the next `LEVEL_CAL_S` of IMU samples,
+in either phase, become `EST_TRIM_ROLL/PITCH` (companion.estimation.level), or a refusal that
+says why (moving, not 1 g, no samples).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from companion.core.params import ParamSpec, float_param, int_param
-from companion.core.state import EstimatorState
+from companion.core.state import EstimatorState, ImuSample
 from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
 
@@ -31,6 +39,21 @@ if TYPE_CHECKING:
     from companion.estimation.fusion import EstimatorCore
 
 log = logging.getLogger(__name__)
+
+LEVEL_CAL_S = 2.0
+"""IMU time a level calibration averages."""
+LEVEL_CAL_TIMEOUT_S = 5.0
+"""A level calibration that has not collected its samples by then is refused."""
+
+
+@dataclass
+class _LevelRequest:
+    reply: Callable[[bool, str], None]
+    started_s: float
+    first_t_ns: int | None = None
+    last_t_ns: int = 0
+    rates: list[tuple[float, float, float]] = field(default_factory=list)
+    accel: list[tuple[float, float, float]] = field(default_factory=list)
 
 FMT_STATE = 1
 FMT_GPS = 2
@@ -56,6 +79,8 @@ class EstimatorThread(ManagedThread):
         self._hzn_seen = 0
         self._temp_seen = 0
         self.faults_reported = 0
+        self._level_lock = threading.Lock()
+        self._level: _LevelRequest | None = None
 
     @classmethod
     def declare_params(cls, p: str) -> list[ParamSpec]:
@@ -99,6 +124,11 @@ class EstimatorThread(ManagedThread):
             float_param(f"{p}_TRIM_YAW", 0.0, -0.5, 0.5, "rad",
                         "IMU board yaw against the airframe (a level calibration cannot see it; "
                         "measure it on the ground)."),
+            int_param(f"{p}_TRIM_BIAS", 1, 0, 1, "",
+                      "1: TRIM_ROLL/PITCH come from a level calibration, which read that "
+                      "moment's accelerometer bias as a board tilt; the filter gives that tilt "
+                      "back as it learns the bias in flight. 0 for trims measured otherwise "
+                      "(no effect while both are 0)."),
             float_param(f"{p}_GPS_VEL", 0.25, 0.01, 10.0, "m/s",
                         "GPS velocity 1-sigma (a receiver's own figure is about 0.05 m/s; "
                         "the rest covers its latency jitter in turns)."),
@@ -129,8 +159,73 @@ class EstimatorThread(ManagedThread):
         if self.core is not None:
             self.core.update_params(self._params())
 
+    # ------------------------------------------------------------------ commands
+    COMMANDS = frozenset({"calibrate_level"})
+
+    def post_command(self, kind: str, reply: Callable[[bool, str], None]) -> str | None:
+        if kind not in self.COMMANDS:
+            return super().post_command(kind, reply)
+        if not self.running:
+            return "level calibration: the estimator is not running"
+        with self._level_lock:
+            if self._level is not None:
+                return "level calibration: one is already in progress"
+            self._level = _LevelRequest(reply, self.ctx.clock.monotonic())
+        log.info("level calibration: keep the aircraft level and still for %.0f s", LEVEL_CAL_S)
+        return None
+
+    def _collect_level(self, samples: Sequence[ImuSample]) -> None:
+        """Worker: feed a pending level calibration; finish it once it has its samples."""
+        with self._level_lock:
+            req = self._level
+        if req is None:
+            return
+        for s in samples:
+            if req.first_t_ns is None:
+                req.first_t_ns = s.t_ns
+            req.last_t_ns = s.t_ns
+            req.rates.append(s.rates_rad_s)
+            req.accel.append(s.accel_m_s2)
+        span_s = (req.last_t_ns - req.first_t_ns) / 1e9 if req.first_t_ns is not None else 0.0
+        if span_s < LEVEL_CAL_S:
+            if self.ctx.clock.monotonic() - req.started_s > LEVEL_CAL_TIMEOUT_S:
+                self._finish_level(req, False, (
+                    f"level calibration: {len(req.accel)} IMU samples over {span_s:.1f} s in "
+                    f"{LEVEL_CAL_TIMEOUT_S:.0f} s, {LEVEL_CAL_S:.0f} s needed"))
+            return
+        from companion.estimation.level import LevelCalibrationError, level_trim
+
+        try:
+            trim = level_trim(req.accel, req.rates)
+        except LevelCalibrationError as exc:
+            self._finish_level(req, False, str(exc))
+            return
+        self.ctx.params.set_many(trim.params(self.param_prefix))
+        if self.core is not None:  # at once, also in the initial phase (no cycle boundary)
+            self.core.update_params(self._params())
+        # one STATUSTEXT's 50 characters
+        self._finish_level(req, True, (
+            f"level calibration done: roll {math.degrees(trim.roll_rad):+.2f} pitch "
+            f"{math.degrees(trim.pitch_rad):+.2f} deg"))
+
+    def _finish_level(self, req: _LevelRequest, ok: bool, message: str) -> None:
+        with self._level_lock:
+            self._level = None
+        (log.info if ok else log.warning)("%s", message)
+        try:
+            req.reply(ok, message)
+        except Exception:  # the requester's hook must not cost the estimator a cycle
+            log.exception("level calibration reply failed")
+
+    def _abandon_level(self, why: str) -> None:
+        with self._level_lock:
+            req = self._level
+        if req is not None:
+            self._finish_level(req, False, f"level calibration: {why}")
+
     def recover(self) -> None:
         self.core = None
+        self._abandon_level("the estimator restarted")
 
     # ------------------------------------------------------------------ initial phase
     def prologue(self) -> bool:
@@ -143,16 +238,19 @@ class EstimatorThread(ManagedThread):
         self._std_index = [int(i) for i in np.r_[IDX_POS, IDX_VEL, IDX_ATT]]
         core = EstimatorCore(self._params(), self.ctx.home_lla)
         state.imu_stream.drain()
+        self.core = core  # a level calibration in this phase updates its trims at once
         while not self.stop_requested:
             sample = state.imu_stream.get(0.05, clock)
+            self._collect_level([sample] if sample is not None else [])
             if core.initial_phase([sample] if sample is not None else [], state.gps.read()):
                 break
             if core.init_failed:
                 self.last_error = "initialisation refused (IMU mean is not ~1 g)"
+                self.core = None
                 return False
         if self.stop_requested or core.filter is None:
+            self.core = None
             return False
-        self.core = core
         self._gps_seen = state.gps.version
         self._temp_seen = -1  # the last slow block's temperature counts as new
         log.info("estimator initialised (moving start: %s)", core.moving_start)
@@ -169,6 +267,8 @@ class EstimatorThread(ManagedThread):
             return 0
         self.work_t0_ns = time.perf_counter_ns()  # step time excludes the wait
         samples = [first, *stream.drain()]
+        if self._level is not None:
+            self._collect_level(samples)
         core.predict(samples)
         fix, version, _ = self.ctx.state.gps.read_versioned()
         if fix is not None and version != self._gps_seen:

@@ -50,7 +50,7 @@ from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
 from companion.estimation.attitude import estimate_attitude
-from companion.estimation.fusion import EstimatorCore
+from companion.estimation.fusion import EstimatorCore, board_to_body
 from companion.estimation.quat import (
     FloatArray,
     heading_error_rad,
@@ -164,6 +164,9 @@ class FlightSpec:
     horizon_quality: float = 0.8
     horizon_latency_s: float = 0.0
     """Age of a horizon fix when it reaches the estimator (video frame time to fusion)."""
+    level_calibration: bool = True
+    """Level-calibrate the installation before the flight (when the IMU profile has a
+    levelling error: `ImuSim.level_calibration`), as ``companion sim`` does."""
     horizon_camera: str = ""
     """``""``: horizon fixes are the truth plus ``horizon_noise_rad`` of white noise. A
     disturbance level of :class:`companion.sim.camera.SimCamera` (``none``, ``light``,
@@ -257,6 +260,8 @@ class SitlRecording:
     """The gyro's true matrix error ``M`` at the flight's mean temperature (scale factor,
     cross-axis sensitivity and mounting misalignment together): the part reads ``(I + M) w``
     plus its bias, the model the estimator's ``EST_GS_STD`` states follow."""
+    imu_accel_matrix: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    """The accelerometer's matrix error at the same temperature, in the same convention."""
     imu_misalignment_rad: FloatArray = field(default_factory=lambda: np.zeros(3))
     imu_temperature_c: FloatArray = field(default_factory=lambda: np.zeros(0))
     """The IMU's temperature per tick, (N,)."""
@@ -267,6 +272,25 @@ class SitlRecording:
     camera: dict[str, Any] | None = None
     """The simulated camera's counts and errors (``CameraStats.summary``) when the horizon
     fixes came from the detector (``FlightSpec.horizon_camera``)."""
+    level_trim: dict[str, float] = field(default_factory=dict)
+    """The trims the pre-flight level calibration measured (``TRIM_ROLL``, ``TRIM_PITCH``):
+    the estimator runs with them, as the runtime of ``companion sim`` does."""
+    level_calibration: dict[str, float] | None = None
+    """That calibration's trims and the levelling error behind them, degrees (None: none)."""
+
+    @property
+    def gyro_matrix_trimmed(self) -> FloatArray:
+        """:attr:`imu_gyro_matrix` as the estimator can see it: in the board's axes turned by
+        the level trims, and against the accelerometer's frame (the rotation part of its own
+        matrix there), which is the frame the estimator's attitude follows. A rotation the two
+        triads share, such as the board's yaw on the airframe, no estimator can see. What its
+        ``EST_GS_STD`` states should approach."""
+        trim = self.level_trim
+        b = np.array(board_to_body(trim.get("TRIM_ROLL", 0.0), trim.get("TRIM_PITCH", 0.0),
+                                   trim.get("TRIM_YAW", 0.0)))
+        u, _s, vt = np.linalg.svd(b @ (np.eye(3) + self.imu_accel_matrix))
+        frame = u @ vt
+        return np.asarray(b @ (np.eye(3) + self.imu_gyro_matrix) @ frame.T - np.eye(3))
 
     @property
     def ticks(self) -> int:
@@ -309,6 +333,9 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
     gps_every = int(round(IMU_RATE_HZ / sensors.gps.rate_hz))
     hzn_rng = np.random.default_rng(rng.integers(2**63))
+    # the installation's level calibration before the flight, as companion sim makes it
+    level_rng = np.random.default_rng(rng.integers(2**63))
+    level_cal = imu_sim.level_calibration(level_rng) if spec.level_calibration else None
     imu_dec = ImuDecoder()
     gps_dec = NmeaDecoder(expected_sentences=sensors.gps.expected_sentences,
                           idle_handoff_ms=GPS_IDLE_MS)
@@ -396,6 +423,8 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
                         latency_s=CAMERA_LATENCY_S, disturbance=spec.horizon_camera)
         horizon = horizon_measurements(cam, t_s, truth[:, 0:3])
         camera = cam.stats.summary()
+    matrices = imu_sim.errors.scale_matrices(
+        float(np.mean(temperature)) if len(temperature) else 25.0)
     return SitlRecording(
         spec=spec,
         home_lla=(frame.lat0_deg, frame.lon0_deg, frame.alt0_m),
@@ -416,13 +445,16 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
         gps_fix_ok=np.array([e[2] for e in gps_epochs], dtype=bool),
         imu_gyro_scale=np.array(imu_sim.errors.gyro_scale),
         imu_accel_scale=np.array(imu_sim.errors.accel_scale),
-        imu_gyro_matrix=np.array(imu_sim.errors.scale_matrices(
-            float(np.mean(temperature)) if len(temperature) else 25.0)[0]) - np.eye(3),
+        imu_gyro_matrix=np.array(matrices[0]) - np.eye(3),
+        imu_accel_matrix=np.array(matrices[1]) - np.eye(3),
         imu_misalignment_rad=np.array(imu_sim.errors.misalignment_rad),
         imu_temperature_c=temperature,
         propeller_rpm=rpm,
         sensors=sensors.metadata(),
         camera=camera,
+        level_trim={k.removeprefix("EST_"): v for k, v in level_cal.params().items()}
+        if level_cal is not None else {},
+        level_calibration=level_cal.metadata() if level_cal is not None else None,
     )
 
 
@@ -554,7 +586,9 @@ def _error_state(rec: SitlRecording, k: int, st_q: FloatArray, pos: FloatArray, 
 def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
     """Run the project's estimator over a recording, as the estimator thread would."""
     opts = options or EskfOptions()
-    est = EskfAsThread(rec.home_lla, params=opts.params, eskf_kwargs=opts.eskf_kwargs)
+    # the trims the flight's level calibration set, unless the options name their own
+    est = EskfAsThread(rec.home_lla, params={**rec.level_trim, **opts.params},
+                       eskf_kwargs=opts.eskf_kwargs)
     n = rec.ticks
     quat = np.full((n, 4), np.nan)
     pos = np.full((n, 3), np.nan)
@@ -832,7 +866,8 @@ class RunResult:
     camera: dict[str, Any] | None = None
     """The camera's figures when the horizon fixes came from the detector."""
     gyro_matrix_true: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
-    """The simulated gyro's matrix error (:attr:`SitlRecording.imu_gyro_matrix`)."""
+    """The simulated gyro's matrix error in the estimator's axes
+    (:attr:`SitlRecording.gyro_matrix_trimmed`)."""
 
 
 def _compact(run: EskfRun) -> EskfRun:
@@ -910,5 +945,5 @@ def evaluate(
         outage=outage,
         elapsed_s=time.perf_counter() - t0,
         camera=rec.camera,
-        gyro_matrix_true=rec.imu_gyro_matrix,
+        gyro_matrix_true=rec.gyro_matrix_trimmed,
     )

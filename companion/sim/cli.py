@@ -81,7 +81,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
                      no_noise=args.no_noise, imu_profile=args.imu_profile,
                      gps_profile=args.gps_profile, turbulence=args.turbulence,
-                     horizon_camera=args.horizon_camera)
+                     horizon_camera=args.horizon_camera,
+                     level_calibration=not args.no_level_cal)
 
     def live(rt: object) -> None:
         if sys.stderr.isatty() and args.verbose == 0:
@@ -254,4 +255,7 @@ def add_commands(sub: argparse._SubParsersAction,
                    help="perfect sensors: IMU and GPS without noise, bias, scale or mounting "
                    "error, vibration, latency jitter, multipath or outage; calm air unless "
                    "--turbulence is given")
+    p.add_argument("--no-level-cal", action="store_true",
+                   help="fly without the level calibration the simulated installation otherwise "
+                   "gets before the flight (its trims set EST_TRIM_ROLL/PITCH)")
     p.set_defaults(func=cmd_sim, fast_exit=True)

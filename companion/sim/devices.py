@@ -27,6 +27,8 @@ from companion.drivers.imu_protocol import (
     STATUS_ACCEL_OK,
     STATUS_GYRO_OK,
     STATUS_SELF_TEST,
+    ImuDecoder,
+    ImuFast,
     encode_fast_frame,
     encode_slow_block,
     slow_block_words,
@@ -42,6 +44,8 @@ from companion.drivers.servo_protocol import (
     encode_pilot,
     pilot_switch_auto,
 )
+from companion.estimation.level import GRAVITY_M_S2 as LEVEL_GRAVITY_M_S2
+from companion.estimation.level import LevelTrim, level_trim
 from companion.sim.imu_model import ImuErrorModel, independent_stream
 
 __all__ = [
@@ -143,6 +147,9 @@ class ImuSimConfig:
     vib_ref_rpm: float = 2400.0
     vib_harmonics: tuple[tuple[float, float], ...] = ((1.0, 1.0), (2.0, 0.6))
     """(multiple of the shaft rate, relative amplitude): shaft imbalance, blade pass ..."""
+    level_error_sigma_rad: float | None = None
+    """The installation was level-calibrated before the flight with the aircraft standing this
+    far off level (1 sigma, roll and pitch); None: no level calibration (`ImuSim.level_calibration`)."""
 
     def temperature_at(self, t_s: float) -> float:
         """The part's temperature ``t_s`` after switch-on (warming exponentially)."""
@@ -151,6 +158,28 @@ class ImuSimConfig:
             return self.temperature_c
         return self.temperature_c + (start - self.temperature_c) * math.exp(
             -t_s / self.temperature_tau_s)
+
+
+LEVEL_CALIBRATION_S = 5.0
+"""How long the simulated level calibration reads the still part."""
+
+
+@dataclass(frozen=True)
+class SimLevelCalibration:
+    """A simulated pre-flight level calibration: what it measured and the truth behind it."""
+
+    trim: LevelTrim
+    level_error_rad: tuple[float, float]
+    """How far off level (roll, pitch) the aircraft stood: what the trim cannot know."""
+
+    def params(self, prefix: str = "EST") -> dict[str, float]:
+        return self.trim.params(prefix)
+
+    def metadata(self) -> dict[str, float]:
+        return {"trim_roll_deg": round(math.degrees(self.trim.roll_rad), 4),
+                "trim_pitch_deg": round(math.degrees(self.trim.pitch_rad), 4),
+                "level_error_roll_deg": round(math.degrees(self.level_error_rad[0]), 4),
+                "level_error_pitch_deg": round(math.degrees(self.level_error_rad[1]), 4)}
 
 
 class ImuSim:
@@ -198,6 +227,40 @@ class ImuSim:
     def temperature_at(self, t_s: float) -> float:
         """The part's temperature ``t_s`` after switch-on (its warm-up profile)."""
         return self.config.temperature_at(t_s)
+
+    def level_calibration(self, rng: np.random.Generator,
+                          seconds: float = LEVEL_CALIBRATION_S) -> SimLevelCalibration | None:
+        """The level calibration a user makes before the flight, on this part (None when the
+        configuration has none: `ImuSimConfig.level_error_sigma_rad`).
+
+        The aircraft stands still, engine off, ``rng``'s draw of the levelling error off level,
+        the part at its switch-on temperature. A twin of this simulator (same drawn errors,
+        noise from ``rng``, so the flight's own draws do not move) sends ``seconds`` of frames;
+        the driver's decoder reads them and the runtime's own calibration
+        (`companion.estimation.level.level_trim`) turns them into the trims.
+        """
+        sigma = self.config.level_error_sigma_rad
+        if sigma is None:
+            return None
+        roll, pitch = (float(v) for v in rng.normal(0.0, sigma, 2))
+        g = LEVEL_GRAVITY_M_S2
+        accel = (g * math.sin(pitch), -g * math.sin(roll) * math.cos(pitch),
+                 -g * math.cos(roll) * math.cos(pitch))
+        twin = ImuSim.__new__(ImuSim)
+        twin.__dict__.update(self.__dict__)
+        twin.errors = self.errors.spare(rng)
+        twin.frames, twin._sum, twin._count, twin._words = 0, [0.0] * 6, 0, ()
+        decoder = ImuDecoder()
+        temperature_c = self.config.temperature_at(0.0)
+        rates: list[tuple[float, float, float]] = []
+        accels: list[tuple[float, float, float]] = []
+        for k in range(int(round(seconds * self.RATE_HZ))):
+            data = twin.frame((0.0, 0.0, 0.0), accel, 0.0, temperature_c)
+            for item in decoder.feed(data, k * 10_000_000):
+                if isinstance(item, ImuFast) and item.gyro_ok and item.accel_ok:
+                    rates.append(item.rates_rad_s)
+                    accels.append(item.accel_m_s2)
+        return SimLevelCalibration(level_trim(accels, rates), (roll, pitch))
 
     def frame(self, rates_rad_s: Sequence[float], accel_m_s2: Sequence[float],
               rpm: float = 0.0, temperature_c: float | None = None) -> bytes:

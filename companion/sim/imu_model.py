@@ -27,6 +27,7 @@ an independent stream jumped off that generator, so enabling a term never reshuf
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import TYPE_CHECKING
 
@@ -155,6 +156,20 @@ class ImuErrorModel:
         self.temperature_c = math.nan
         self.vibration = [0.0] * 6
         """The last sample's vibration (accel m/s^2, gyro rad/s), as the part saw it."""
+
+    def spare(self, rng: np.random.Generator) -> ImuErrorModel:
+        """This part as it is now (every drawn error and bias state) with noise from ``rng``:
+        measurements outside the flight, such as the simulated level calibration, then leave
+        the flight's own draws where they were."""
+        twin = copy.copy(self)
+        twin._rng = np.random.default_rng(rng.integers(2**63))
+        twin._extra = np.random.default_rng(rng.integers(2**63))
+        twin._row = BLOCK_FRAMES
+        for name in ("gyro_walk_bias_rad_s", "accel_walk_bias_m_s2", "gm_gyro_rad_s",
+                     "gm_accel_m_s2", "vibration"):
+            setattr(twin, name, list(getattr(self, name)))
+        twin._gyro_matrix, twin._accel_matrix = [], []
+        return twin
 
     # ------------------------------------------------------------------ helpers
     def _refresh_matrices(self, temperature_c: float) -> None:

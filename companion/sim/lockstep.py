@@ -167,7 +167,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
         vanish=[parse_vanish(v) for v in sim.vanish], imu_noise=not sim.no_noise,
         imu_profile=getattr(sim, "imu_profile", None), gps_profile=getattr(sim, "gps_profile", None),
         turbulence=getattr(sim, "turbulence", None),
-        auto_switch_s=sim.auto_switch_s, horizon_camera=getattr(sim, "horizon_camera", "off")),
+        auto_switch_s=sim.auto_switch_s, horizon_camera=getattr(sim, "horizon_camera", "off"),
+        level_calibration=getattr(sim, "level_calibration", True)),
         ports=ports, clock=clock)
     ports["servo"].on_driver_write = world.answer_servo
 
@@ -200,6 +201,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             extra_bridges=[inject] if faults else []))
         if sim.gps_ashtech:
             rt.ctx.params.set("GPS_PASHR", 1)
+        if world.level_cal is not None:  # the installation's level calibration (runner.py)
+            rt.ctx.params.set_many(world.level_cal.params())
         if on_runtime is not None:
             on_runtime(rt)
         # no ground links here: the camera's fixes go into the slot the legacy adapter writes,

@@ -87,9 +87,11 @@ _CONSUMER = ImuSimConfig(
     accel_scale_sigma=0.03 / 3.0,                   # initial calibration tolerance +-3 %
     gyro_cross_axis_sigma=0.02 / 3.0,               # cross-axis sensitivity +-2 %
     accel_cross_axis_sigma=0.02 / 3.0,              # cross-axis sensitivity +-2 %
-    # installation (foam-taped board, about 0.5 deg) after the level calibration every
-    # autopilot asks for (EST_TRIM_ROLL/PITCH): assumed 0.1 deg left
-    misalignment_sigma_rad=0.1 * DEG,
+    # installation: a foam-taped board, about 0.5 deg (assumed); the level calibration every
+    # autopilot asks for (EST_TRIM_ROLL/PITCH) then reads it with the aircraft levelled to
+    # about 0.1 deg (assumed), and cannot see its yaw
+    misalignment_sigma_rad=0.5 * DEG,
+    level_error_sigma_rad=0.1 * DEG,
     gyro_g_sensitivity_rad_s_per_m_s2=0.1 * DEG / G_M_S2,  # linear acceleration sens. 0.1 dps/g
     temperature_c=40.0, temperature_start_c=20.0, temperature_tau_s=300.0,  # assumed warm-up
     gyro_bias_temp_rad_s_per_c=20.0 / 125.0 / 3.0 * DEG,  # ZRO variation +-20 dps, -40..85 C
@@ -124,6 +126,7 @@ _TACTICAL = ImuSimConfig(
     gyro_cross_axis_sigma=0.05 * DEG,               # axis-to-axis misalignment +-0.05 deg
     accel_cross_axis_sigma=0.035 * DEG,             # axis-to-axis misalignment +-0.035 deg
     misalignment_sigma_rad=0.1 * DEG,               # installation (machined bracket): assumed
+    level_error_sigma_rad=0.1 * DEG,                # levelled for the level calibration: assumed
     gyro_g_sensitivity_rad_s_per_m_s2=0.009 * DEG / G_M_S2,  # linear-g effect 0.009 dps/g
     temperature_c=40.0, temperature_start_c=20.0, temperature_tau_s=600.0,
     gyro_bias_temp_rad_s_per_c=0.0025 / 3.0 * DEG,  # residual after temperature calibration
@@ -159,6 +162,7 @@ _ISIS = ImuSimConfig(
     gyro_cross_axis_sigma=0.003,
     accel_cross_axis_sigma=0.003,
     misalignment_sigma_rad=0.3 * DEG,
+    level_error_sigma_rad=0.1 * DEG,
     gyro_g_sensitivity_rad_s_per_m_s2=0.02 * DEG / G_M_S2,
     temperature_c=40.0, temperature_start_c=20.0, temperature_tau_s=600.0,
     gyro_bias_temp_rad_s_per_c=0.002 * DEG,

@@ -53,6 +53,9 @@ class SimOptions:
     """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.thread_faults)."""
     auto_switch_s: float = 20.0
     no_noise: bool = False
+    level_calibration: bool = True
+    """The simulated installation is level-calibrated before the flight and the runtime gets
+    its trims (`EST_TRIM_ROLL/PITCH`; `--no-level-cal` flies without)."""
     """Every sensor perfect (IMU and GPS); the air calm unless `turbulence` is given."""
     imu_profile: str | None = None
     """`companion.sim.profiles` names; None: the realistic defaults (consumer MEMS, u-blox M8
@@ -91,6 +94,8 @@ class WorldProcess:
             cmd.append("--gps-ashtech")
         if opts.no_noise:
             cmd.append("--no-noise")
+        if not opts.level_calibration:
+            cmd.append("--no-level-cal")
         if opts.horizon_camera != "off":
             cmd += ["--horizon-camera", opts.horizon_camera]
         for f in opts.faults:
@@ -188,6 +193,8 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
                     extra_bridges=live_view_bridges(cfg) + ([inject] if faults else [])))
                 if sim.gps_ashtech:
                     rt.ctx.params.set("GPS_PASHR", 1)
+                # the simulated installation's level calibration, as a user's would set them
+                rt.ctx.params.set_many(world.devices.get("params", {}))
                 if on_runtime is not None:
                     on_runtime(rt)
                 if steps.pending:

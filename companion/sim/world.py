@@ -118,6 +118,9 @@ class WorldOptions:
     horizon_camera: str = "off"
     """`HORIZON_CAMERA_CHOICES`: no camera, or one whose frames are clean or disturbed as the
     thesis's radio video link disturbed them (light, thesis)."""
+    level_calibration: bool = True
+    """Level-calibrate the installation before the flight, as a user does (`ImuSim.level_calibration`;
+    profiles without a levelling error have none): the runtime gets the trims as parameters."""
 
 
 class Pty:
@@ -202,6 +205,9 @@ class World:
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
         self.injectors = {dev: FaultInjector(plan, np.random.default_rng(rng.integers(2**63)))
                           for dev, plan in opts.faults.items()}
+        # drawn after every other stream, so a calibration changes no sensor's draws
+        level_rng = np.random.default_rng(rng.integers(2**63))
+        self.level_cal = self.imu.level_calibration(level_rng) if opts.level_calibration else None
         if ports is None:
             opts.device_dir.mkdir(parents=True, exist_ok=True)
             self.ptys: dict[str, Any] = {dev: Pty(opts.device_dir / dev) for dev in DEVICES}
@@ -413,6 +419,7 @@ class World:
             "dropped_bytes": {d: p.dropped_bytes for d, p in self.ptys.items()},
             "faults": {d: dataclasses.asdict(i.counts) for d, i in self.injectors.items()},
             "gps_outages": self.gps.outages,
+            **({"level_calibration": self.level_cal.metadata()} if self.level_cal else {}),
             **({"camera": self._camera_stats} if self._camera_stats is not None else {}),
         }
 
@@ -576,6 +583,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vanish", action="append", default=[])
     ap.add_argument("--auto-switch", type=float, default=20.0)
     ap.add_argument("--no-noise", action="store_true")
+    ap.add_argument("--no-level-cal", action="store_true")
     ap.add_argument("--horizon-camera", default="off", choices=HORIZON_CAMERA_CHOICES)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="sim: %(levelname)s %(message)s")
@@ -592,7 +600,8 @@ def main(argv: list[str] | None = None) -> int:
         flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
         gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
         imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
-        auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera)
+        auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera,
+        level_calibration=not args.no_level_cal)
     try:
         world = World(opts)
     except (FlightModelError, ValueError) as exc:
@@ -603,6 +612,7 @@ def main(argv: list[str] | None = None) -> int:
     frame = world.model.frame
     ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in DEVICES}
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
+    ready["params"] = world.level_cal.params() if world.level_cal is not None else {}
     print("READY " + json.dumps(ready), flush=True)
     # Fly only once the runtime has opened its ports: until then nobody would read the devices.
     # The GO line may carry what only the started runtime knows: `GO {"horizon_dest": ...}`.

@@ -99,10 +99,16 @@ MANAGER_PARAMS: list[ParamSpec] = [
 class ManagerCommand:
     """A request to the manager from a bridge or the console; `reply(ok, reason)` acknowledges."""
 
-    kind: str  # "stop" | "reboot" | "restart_thread"
+    kind: str  # "stop" | "reboot" | "restart_thread" | a thread's own (`ManagedThread.COMMANDS`)
     thread: str | int | None = None
     reason: int = 0
     reply: Callable[[bool, str], None] | None = None
+
+
+def _no_reply(ok: bool, reason: str) -> None:
+    """A command posted without a reply hook: its outcome only goes to the log."""
+    if not ok:
+        log.warning("command failed: %s", reason)
 
 
 @dataclass(frozen=True)
@@ -542,7 +548,15 @@ class ThreadManager:
                     t.failed = False
                     self._restart(t, "command")
             else:
-                ok, reason = False, f"unknown command {cmd.kind!r}"
+                takers = [t for t in self.threads if cmd.kind in t.COMMANDS]
+                if not takers:
+                    ok, reason = False, f"unknown command {cmd.kind!r}"
+                else:
+                    # the thread replies itself once the command is done
+                    error = takers[0].post_command(cmd.kind, cmd.reply or _no_reply)
+                    if error is None:
+                        continue
+                    ok, reason = False, error
             if cmd.reply is not None:
                 try:
                     cmd.reply(ok, reason)

@@ -197,6 +197,15 @@ class ManagedThread:
     def on_params_changed(self) -> None:
         """Worker thread, between cycles, after any parameter changed."""
 
+    COMMANDS: frozenset[str] = frozenset()
+    """Manager commands this thread carries out itself (`post_command`)."""
+
+    def post_command(self, kind: str, reply: Callable[[bool, str], None]) -> str | None:
+        """Any thread: hand over one of `COMMANDS`; the worker calls ``reply(ok, reason)`` when
+        it is done. Returns an error instead when the command cannot start (then ``reply`` is
+        never called)."""
+        return f"thread {self.name} does not take the command {kind!r}"
+
     # ---------------------------------------------------------------- parameters
     def param_specs(self) -> list[ParamSpec]:
         """Every parameter of this thread: its row's and its class's."""
