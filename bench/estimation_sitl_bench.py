@@ -447,8 +447,11 @@ def print_knowledge(args: argparse.Namespace) -> None:
           f"EST_GS_STD {est.get('GS_STD', 0.0):g} per element (the part's are drawn with "
           f"{imu.gyro_scale_sigma:g} and {imu.gyro_cross_axis_sigma:g}); it models no "
           "accelerometer scale factor or cross-axis error, g-sensitivity or vibration. The "
-          "profile's accelerometer bias and mounting misalignment are what a six-position and a "
-          "level calibration leave (docs/sitl.md).")
+          "profile's accelerometer bias is what a six-position calibration leaves; before each "
+          "flight the installation is level-calibrated (the aircraft levelled to "
+          f"{math.degrees(imu.level_error_sigma_rad or 0.0):g} deg), and the estimator flies "
+          "with the trims the runtime's calibration computed (EST_TRIM_ROLL/PITCH, "
+          f"EST_TRIM_BIAS {est.get('TRIM_BIAS', 0.0):g}; docs/sitl.md).")
 
 
 def print_accuracy(fig: dict[str, dict[str, Any]], seeds: int) -> None:

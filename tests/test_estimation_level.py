@@ -116,6 +116,20 @@ def test_the_reported_attitude_gives_back_the_tilt_of_the_learnt_bias() -> None:
     assert f._q != turned.quaternion  # only what is reported turns
 
 
+def test_a_horizon_fix_is_held_against_the_reported_attitude() -> None:
+    """The camera sees the airframe: a fix equal to what is reported leaves nothing to correct."""
+    f = Eskf()
+    assert f.initialise(LEVEL, np.zeros(3), np.zeros(3), np.zeros(3))
+    f._set_biases(np.zeros(3), np.array([0.05, -0.03, 0.0]))
+    f.trim_bias_tilt = True
+    v = f.flight_view()
+    res = f.update_attitude(v.roll_rad, v.pitch_rad, 1.0)
+    assert res.accepted and np.abs(res.innovation).max() < 1e-9
+    f.trim_bias_tilt = False  # the filter's own frame is the tilt of the bias away
+    res = f.update_attitude(v.roll_rad, v.pitch_rad, 1.0)
+    assert np.abs(res.innovation).max() > 0.5 * 0.05 / G
+
+
 def test_trim_bias_follows_the_parameters_and_needs_a_trim() -> None:
     core = _core()
     f = core.new_filter(False)

@@ -341,6 +341,8 @@ class Eskf:
         self.pd_check_every = int(pd_check_every)
         self.gravity_m_s2 = float(gravity_m_s2)
         self.trim_bias_tilt = False
+        self._tilt_of_ba: tuple[tuple[float, ...] | None, tuple[float, float, float, float]] = (
+            None, (1.0, 0.0, 0.0, 0.0))
         """Report the attitude turned by the tilt the accelerometer bias estimate amounts to
         (``b_a`` over g about x and y). Set when the samples come through a level calibration's
         trim (``EST_TRIM_BIAS``): that trim took the bias at calibration for a board tilt, so
@@ -816,7 +818,8 @@ class Eskf:
         past = self._state_at(self._t - latency)
         if past is None:
             return UpdateResult(False, "latency_out_of_range")
-        q_then = past[2]
+        # the horizon sees the airframe: compare it with the attitude as reported
+        q_then = self._reported_q(past[2]) if self.trim_bias_tilt else past[2]
         est_roll, est_pitch, est_yaw = quat_to_euler_f(*q_then)
         if abs(est_pitch) > math.radians(75.0) or abs(pitch) > math.radians(75.0):
             return UpdateResult(False, "attitude_out_of_range")
@@ -1279,15 +1282,18 @@ class Eskf:
         r = rotmat_f(*dq)
         self._set_biases(r @ self._bg, r @ self._ba)
 
-    def _reported_q(self) -> tuple[float, float, float, float]:
-        """The attitude as reported (`trim_bias_tilt`): the filter's quaternion times the
-        body-axes rotation (-b_y / g, b_x / g, 0)."""
-        w, x, y, z = self._q
+    def _reported_q(self, q: tuple[float, ...] | None = None
+                    ) -> tuple[float, float, float, float]:
+        """The attitude as reported (`trim_bias_tilt`): the filter's quaternion (or ``q``)
+        times the body-axes rotation (-b_y / g, b_x / g, 0)."""
+        w, x, y, z = self._q if q is None else q
         if not self.trim_bias_tilt:
             return (w, x, y, z)
-        g = self.gravity_m_s2
-        bx, by, _bz = self._ba_f
-        return quat_multiply_f(w, x, y, z, *quat_from_rotvec_f(-by / g, bx / g, 0.0))
+        ba = self._ba_f
+        if ba is not self._tilt_of_ba[0]:  # the bias moves at the updates, not per sample
+            g = self.gravity_m_s2
+            self._tilt_of_ba = (ba, quat_from_rotvec_f(-ba[1] / g, ba[0] / g, 0.0))
+        return quat_multiply_f(w, x, y, z, *self._tilt_of_ba[1])
 
     @property
     def covariance(self) -> FloatArray:

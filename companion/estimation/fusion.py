@@ -50,6 +50,15 @@ def board_to_body(roll_rad: float, pitch_rad: float,
             (-sp, sr * cp, cr * cp))
 
 
+def _turned(m: tuple[tuple[float, float, float], ...],
+            v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """``m v`` on floats (the per-sample path: numpy's call costs more than the arithmetic)."""
+    x, y, z = v
+    return (m[0][0] * x + m[0][1] * y + m[0][2] * z,
+            m[1][0] * x + m[1][1] * y + m[1][2] * z,
+            m[2][0] * x + m[2][1] * y + m[2][2] * z)
+
+
 class EstimatorCore:
     """`Eskf` driven by decoded IMU samples, GPS fixes and horizon measurements.
 
@@ -70,7 +79,7 @@ class EstimatorCore:
             raise ValueError(f"EstimatorCore: dt_source must be 'counter' or 'time', got {dt_source!r}")
         self.dt_source = dt_source
         self.p: dict[str, float] = {k: float(v) for k, v in params.items()}
-        self._board_to_body: tuple[tuple[float, ...], ...] | None = None
+        self._board_to_body: tuple[tuple[float, float, float], ...] | None = None
         self._set_trim()
         self.eskf_kwargs = dict(eskf_kwargs or {})
         self.frame = NedFrame(*home_lla) if home_lla is not None else None
@@ -82,6 +91,10 @@ class EstimatorCore:
         self.horizon_used = 0
         self.temperature_readings = 0
         self.last_imu: ImuSample | None = None
+        """The newest sample taken in, for its time (its axes may be the board's: the rates
+        in airframe axes are `last_rates_rad_s`)."""
+        self.last_rates_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        """Its rates in airframe axes (after the trims)."""
         self._last_counter: int | None = None
         self._last_t_ns: int | None = None
         self._first_t_ns: int | None = None
@@ -121,20 +134,8 @@ class EstimatorCore:
         m = self._board_to_body
         if m is None:
             return samples
-        out = []
-        for s in samples:
-            g0, g1, g2 = s.rates_rad_s
-            a0, a1, a2 = s.accel_m_s2
-            out.append(ImuSample(
-                s.t_ns, s.counter,
-                (m[0][0] * g0 + m[0][1] * g1 + m[0][2] * g2,
-                 m[1][0] * g0 + m[1][1] * g1 + m[1][2] * g2,
-                 m[2][0] * g0 + m[2][1] * g1 + m[2][2] * g2),
-                (m[0][0] * a0 + m[0][1] * a1 + m[0][2] * a2,
-                 m[1][0] * a0 + m[1][1] * a1 + m[1][2] * a2,
-                 m[2][0] * a0 + m[2][1] * a1 + m[2][2] * a2),
-                s.gyro_ok, s.accel_ok))
-        return out
+        return [ImuSample(s.t_ns, s.counter, _turned(m, s.rates_rad_s), _turned(m, s.accel_m_s2),
+                          s.gyro_ok, s.accel_ok) for s in samples]
 
     def new_filter(self, moving: bool) -> Eskf:
         p = self.p
@@ -207,6 +208,7 @@ class EstimatorCore:
                 self._last_counter = s.counter
                 self._last_t_ns = s.t_ns
                 self.last_imu = s
+                self.last_rates_rad_s = s.rates_rad_s
         if fix is not None and fix.fix > 0 and fix.lat_deg is not None:
             self._fix = fix
         if not self._enough_init(need) or self._fix is None:
@@ -246,7 +248,10 @@ class EstimatorCore:
             return 0
         used = 0
         by_time = self.dt_source == "time"
-        for s in self._to_body(samples):
+        m = self._board_to_body
+        last: ImuSample | None = None
+        rates = self.last_rates_rad_s
+        for s in samples:
             if by_time:
                 dt = IMU_PERIOD_S if self._last_t_ns is None else (s.t_ns - self._last_t_ns) / 1e9
                 self._last_t_ns = s.t_ns
@@ -257,9 +262,14 @@ class EstimatorCore:
             self._last_counter = s.counter
             if dt <= 0.0:
                 continue  # a repeated frame
-            f.predict(s.rates_rad_s, s.accel_m_s2, dt)
-            self.last_imu = s
+            # turned as `_to_body` does, without a sample object per sample
+            rates = s.rates_rad_s if m is None else _turned(m, s.rates_rad_s)
+            f.predict(rates, s.accel_m_s2 if m is None else _turned(m, s.accel_m_s2), dt)
+            last = s
             used += 1
+        if last is not None:
+            self.last_imu = last
+            self.last_rates_rad_s = rates
         return used
 
     def gps_ned(self, fix: GpsFix) -> tuple[np.ndarray, np.ndarray]:

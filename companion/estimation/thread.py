@@ -321,7 +321,7 @@ class EstimatorThread(ManagedThread):
         assert self.core is not None
         imu = self.core.last_imu
         t_ns = imu.t_ns if imu is not None else self.ctx.clock.realtime_ns()
-        rates = imu.rates_rad_s if imu is not None else (0.0, 0.0, 0.0)
+        rates = self.core.last_rates_rad_s
         bias = v.gyro_bias_rad_s
         home = self.core.frame
         out = EstimatorState(

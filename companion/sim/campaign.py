@@ -54,7 +54,7 @@ __all__ = ["CampaignError", "FlightSpec", "load_campaign", "run_campaign"]
 KEYS: dict[str, Any] = {
     "scenario": str, "seed": int, "aircraft": str, "wind": list, "gps_latency_s": (int, float),
     "duration_s": (int, float), "faults": list, "vanish": list, "thread_faults": list,
-    "no_noise": bool, "params": dict, "lockstep": bool, "speed": (int, float),
+    "no_noise": bool, "no_level_cal": bool, "params": dict, "lockstep": bool, "speed": (int, float),
     "imu_profile": str, "gps_profile": str, "turbulence": str, "horizon_camera": str,
 }
 """What a flight may set, with its type (`wind` is [N, E, D] in m/s)."""
@@ -209,6 +209,8 @@ def flight_command(spec: FlightSpec, campaign_dir: Path) -> list[str]:
         cmd += ["--gps-latency", repr(float(s["gps_latency_s"]))]
     if s.get("no_noise"):
         cmd.append("--no-noise")
+    if s.get("no_level_cal"):
+        cmd.append("--no-level-cal")
     for key, option in (("imu_profile", "--imu-profile"), ("gps_profile", "--gps-profile"),
                         ("turbulence", "--turbulence")):
         if key in s:
