@@ -833,6 +833,12 @@ class Eskf:
         if latency > 0.0:
             # the attitude error then differs from now's by the gyro-bias drift in between
             h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency
+        if self.trim_bias_tilt:
+            # the reported attitude turns with the accelerometer bias: (-b_y, b_x, 0) / g in
+            # body axes, so the fix also speaks of the bias
+            g = self.gravity_m_s2
+            h[:, IDX_ACCEL_BIAS] = h[:, 6:9] @ rotmat_f(*past[2]) @ np.array(
+                ((0.0, -1.0 / g, 0.0), (1.0 / g, 0.0, 0.0), (0.0, 0.0, 0.0)))
         var = (self.horizon_std_rad / qual) ** 2
         result = self._kalman_update(y, h, np.eye(2) * var, self.attitude_gate)
         self._last_att_innovation = y
