@@ -229,8 +229,11 @@ class StillImu(ManagedThread):
         self.rng = np.random.default_rng(1)
         self.counter = 0
         self.shaking = False
+        self.silent = False
 
     def step(self) -> bool:
+        if self.silent:
+            return True
         self.counter += 1
         rates = self.rng.normal(0.0, 0.3 if self.shaking else 0.002, 3)
         accel = self.m @ LEVEL + self.rng.normal(0.0, 0.02, 3)
@@ -300,6 +303,11 @@ def test_level_horizon_from_a_ground_station_sets_the_trims_or_says_why_not() ->
         assert ack is not None and ack.result == mavlink.MAV_RESULT_FAILED, (ack, texts)
         assert any("aircraft is moving (gyro" in t for t in texts), texts
         assert math.degrees(params.get("EST_TRIM_ROLL")) == pytest.approx(1.2, abs=0.05)
+        # the IMU silent: refused when the wait runs out, not left unanswered
+        imu.silent = True
+        ack, texts = _level_command(gcs)
+        assert ack is not None and ack.result == mavlink.MAV_RESULT_FAILED, (ack, texts)
+        assert any("IMU samples" in t for t in texts), texts
         # other calibrations are not this runtime's
         gcs.send(mavlink.MAVLink_command_long_message(
             1, 1, mavlink.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0, 0))

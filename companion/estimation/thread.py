@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.core.params import ParamSpec, float_param, int_param
+from companion.core.params import ParamError, ParamSpec, float_param, int_param
 from companion.core.state import EstimatorState, ImuSample
 from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
@@ -200,7 +200,11 @@ class EstimatorThread(ManagedThread):
         except LevelCalibrationError as exc:
             self._finish_level(req, False, str(exc))
             return
-        self.ctx.params.set_many(trim.params(self.param_prefix))
+        try:
+            self.ctx.params.set_many(trim.params(self.param_prefix))
+        except ParamError as exc:
+            self._finish_level(req, False, f"level calibration: {exc}")
+            return
         if self.core is not None:  # at once, also in the initial phase (no cycle boundary)
             self.core.update_params(self._params())
         # one STATUSTEXT's 50 characters
@@ -264,6 +268,8 @@ class EstimatorThread(ManagedThread):
         stream = self.ctx.state.imu_stream
         first = stream.get(0.05, self.ctx.clock)
         if first is None:
+            if self._level is not None:  # a calibration without samples still times out
+                self._collect_level([])
             return 0
         self.work_t0_ns = time.perf_counter_ns()  # step time excludes the wait
         samples = [first, *stream.drain()]
