@@ -83,7 +83,10 @@ def independent_stream(rng: np.random.Generator) -> np.random.Generator:
 
 
 def _matmul(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
-    return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    """3x3 product; written out, since a warm-up rebuilds the matrices a few times a second
+    (``sum`` over a generator cost four times as much; the sums are the same)."""
+    return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)]
+            for i in range(3)]
 
 
 class ImuErrorModel:
@@ -288,35 +291,43 @@ class ImuErrorModel:
         ta = self.accel_bias_temp
         gn = cfg.gyro_noise_rad_s
         an = cfg.accel_noise_m_s2
-        out = [
-            g[0][0] * r0 + g[0][1] * r1 + g[0][2] * r2 + bg[0] + gm_g[0] + tg[0] * d_t
-            + vib[3] + d[6] * gn,
-            g[1][0] * r0 + g[1][1] * r1 + g[1][2] * r2 + bg[1] + gm_g[1] + tg[1] * d_t
-            + vib[4] + d[7] * gn,
-            g[2][0] * r0 + g[2][1] * r1 + g[2][2] * r2 + bg[2] + gm_g[2] + tg[2] * d_t
-            + vib[5] + d[8] * gn,
-            a[0][0] * a0 + a[0][1] * a1 + a[0][2] * a2 + ba[0] + gm_a[0] + ta[0] * d_t
-            + d[9] * an,
-            a[1][0] * a0 + a[1][1] * a1 + a[1][2] * a2 + ba[1] + gm_a[1] + ta[1] * d_t
-            + d[10] * an,
-            a[2][0] * a0 + a[2][1] * a1 + a[2][2] * a2 + ba[2] + gm_a[2] + ta[2] * d_t
-            + d[11] * an,
-        ]
+        # six locals rather than a list: the slice-and-comprehension form of the clipping and
+        # quantisation below cost more than the arithmetic (same operations, same order)
+        o0 = (g[0][0] * r0 + g[0][1] * r1 + g[0][2] * r2 + bg[0] + gm_g[0] + tg[0] * d_t
+              + vib[3] + d[6] * gn)
+        o1 = (g[1][0] * r0 + g[1][1] * r1 + g[1][2] * r2 + bg[1] + gm_g[1] + tg[1] * d_t
+              + vib[4] + d[7] * gn)
+        o2 = (g[2][0] * r0 + g[2][1] * r1 + g[2][2] * r2 + bg[2] + gm_g[2] + tg[2] * d_t
+              + vib[5] + d[8] * gn)
+        o3 = (a[0][0] * a0 + a[0][1] * a1 + a[0][2] * a2 + ba[0] + gm_a[0] + ta[0] * d_t
+              + d[9] * an)
+        o4 = (a[1][0] * a0 + a[1][1] * a1 + a[1][2] * a2 + ba[1] + gm_a[1] + ta[1] * d_t
+              + d[10] * an)
+        o5 = (a[2][0] * a0 + a[2][1] * a1 + a[2][2] * a2 + ba[2] + gm_a[2] + ta[2] * d_t
+              + d[11] * an)
         if self._g_sens_on:
             k0, k1, k2 = self.g_sensitivity
-            out[0] += k0[0] * a0 + k0[1] * a1 + k0[2] * a2
-            out[1] += k1[0] * a0 + k1[1] * a1 + k1[2] * a2
-            out[2] += k2[0] * a0 + k2[1] * a1 + k2[2] * a2
+            o0 += k0[0] * a0 + k0[1] * a1 + k0[2] * a2
+            o1 += k1[0] * a0 + k1[1] * a1 + k1[2] * a2
+            o2 += k2[0] * a0 + k2[1] * a1 + k2[2] * a2
         if self._clip_on:
             gr = cfg.gyro_range_rad_s
             ar = cfg.accel_range_m_s2
-            out[0:3] = [-gr if c < -gr else gr if c > gr else c for c in out[0:3]]
-            out[3:6] = [-ar if c < -ar else ar if c > ar else c for c in out[3:6]]
-        lsb = cfg.gyro_lsb_rad_s
+            o0 = -gr if o0 < -gr else gr if o0 > gr else o0
+            o1 = -gr if o1 < -gr else gr if o1 > gr else o1
+            o2 = -gr if o2 < -gr else gr if o2 > gr else o2
+            o3 = -ar if o3 < -ar else ar if o3 > ar else o3
+            o4 = -ar if o4 < -ar else ar if o4 > ar else o4
+            o5 = -ar if o5 < -ar else ar if o5 > ar else o5
         floor = math.floor
+        lsb = cfg.gyro_lsb_rad_s
         if lsb:
-            out[0:3] = [floor(c / lsb + 0.5) * lsb for c in out[0:3]]
+            o0 = floor(o0 / lsb + 0.5) * lsb
+            o1 = floor(o1 / lsb + 0.5) * lsb
+            o2 = floor(o2 / lsb + 0.5) * lsb
         lsb = cfg.accel_lsb_m_s2
         if lsb:
-            out[3:6] = [floor(c / lsb + 0.5) * lsb for c in out[3:6]]
-        return out
+            o3 = floor(o3 / lsb + 0.5) * lsb
+            o4 = floor(o4 / lsb + 0.5) * lsb
+            o5 = floor(o5 / lsb + 0.5) * lsb
+        return [o0, o1, o2, o3, o4, o5]
