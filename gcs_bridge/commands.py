@@ -8,8 +8,8 @@ means done. MAVSDK fills the parameters it does not use with NaN; they read as "
 Restarting one thread has no MAVLink command of its own: it is MAV_CMD_USER_1 (31010) with
 param1 = thread id (the ids the thread status shows as `T<id>_...`).
 
-MAV_CMD_PREFLIGHT_CALIBRATION with param5 = 2 (QGroundControl's "Level Horizon", MAVProxy's
-``ahrstrim``) is the level calibration: the estimator reads two seconds of IMU and sets
+MAV_CMD_PREFLIGHT_CALIBRATION with param5 = 2 (MAVProxy's ``ahrstrim``; what QGroundControl's
+PX4 "Level Horizon" sends) is the level calibration: the estimator reads two seconds of IMU and sets
 `EST_TRIM_ROLL/PITCH`; the ACK comes when it is done, with a STATUSTEXT giving the trims or
 why it refused. Other calibrations (gyro, compass, six-position accelerometer, baro...) are
 UNSUPPORTED: the estimator takes the gyro bias itself at every start.

@@ -6,8 +6,10 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -186,14 +188,12 @@ def test_the_simulated_calibration_reads_the_parts_own_tilt_and_moves_no_flight_
         np.random.default_rng(9)) is None
 
 
-def test_a_lockstep_flight_flies_with_the_installations_trims(tmp_path: object) -> None:
-    from pathlib import Path
-
+def test_a_lockstep_flight_flies_with_the_installations_trims(tmp_path: Path) -> None:
     from companion.core.config import Config
     from companion.sim.lockstep import run_lockstep
     from companion.sim.runner import SimOptions
 
-    tmp = Path(str(tmp_path))
+    tmp = tmp_path
     cfg = Config()
     cfg.logs.dir = str(tmp / "flights")
     cfg.params.file = str(tmp / "params.parm")
@@ -244,31 +244,38 @@ class StillImu(ManagedThread):
 
 
 @contextmanager
-def bench_vehicle(imu: StillImu) -> Iterator[tuple[ParamRegistry, MiniGcs]]:
-    """The real estimator thread, no GPS (a bench), the MAVLink bridge, a raw client."""
-    gcs = MiniGcs(listen_port=free_udp_port())
+def bench_runtime(imu: StillImu, endpoint: str) -> Iterator[ParamRegistry]:
+    """The real estimator thread, no GPS (a bench), the MAVLink bridge on ``endpoint``."""
     ctx = RuntimeContext(params=ParamRegistry(), home_lla=(47.0, 8.0, 500.0))
     manager = ThreadManager(ctx, [imu, EstimatorThread()])
     ctx.params.set("MGR_WDG_GRAN_MS", 10)
-    bridge = MavlinkBridge(ctx, manager, [f"udpout:127.0.0.1:{gcs.port}"])
+    bridge = MavlinkBridge(ctx, manager, [endpoint])
     manager.start()
-    import threading
-
     runner = threading.Thread(target=manager.run, daemon=True)
     runner.start()
     try:
-        assert gcs.recv(5.0, "HEARTBEAT") is not None
-        yield ctx.params, gcs
+        yield ctx.params
     finally:
         manager.request_stop("test over")
         runner.join(10.0)
         manager.shutdown()
         bridge.close()
+
+
+@contextmanager
+def bench_vehicle(imu: StillImu) -> Iterator[tuple[ParamRegistry, MiniGcs]]:
+    """`bench_runtime` with the project's raw pymavlink client."""
+    gcs = MiniGcs(listen_port=free_udp_port())
+    try:
+        with bench_runtime(imu, f"udpout:127.0.0.1:{gcs.port}") as params:
+            assert gcs.recv(5.0, "HEARTBEAT") is not None
+            yield params, gcs
+    finally:
         gcs.close()
 
 
 def _level_command(gcs: MiniGcs) -> tuple[object, list[str]]:
-    """QGroundControl's Level Horizon (MAVProxy's ahrstrim): the ACK and the texts after it."""
+    """MAVProxy's ahrstrim (param5 = 2): the ACK and the texts after it."""
     old = {id(m) for m in gcs.history}
     gcs.send(mavlink.MAVLink_command_long_message(1, 1, mavlink.MAV_CMD_PREFLIGHT_CALIBRATION,
                                                   0, 0, 0, 0, 0, 2, 0, 0))
@@ -313,3 +320,25 @@ def test_level_horizon_from_a_ground_station_sets_the_trims_or_says_why_not() ->
             1, 1, mavlink.MAV_CMD_PREFLIGHT_CALIBRATION, 0, 1, 0, 0, 0, 0, 0, 0))
         ack = gcs.recv(3.0, "COMMAND_ACK")
         assert ack is not None and ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+
+
+def test_mavproxy_ahrstrim_level_calibrates(tmp_path: Path) -> None:
+    """MAVProxy 1.8.75's own command, as a separate process (a PX4 identity on its link, as
+    docs/ground-stations.md asks for MAVProxy)."""
+    from test_gcs_mavproxy import MavProxy
+
+    imu = StillImu(-0.9, 1.4)
+    port = free_udp_port()
+    with bench_runtime(imu, f"udpout:127.0.0.1:{port}?identity=px4") as params:
+        mp = MavProxy(port, tmp_path, modules="param,calibration,cmdlong")
+        try:
+            assert mp.wait_line("Received", 25.0) is not None, "\n".join(mp.lines)
+            mark = mp.mark()
+            mp.cmd("ahrstrim")
+            assert wait_for(lambda: abs(math.degrees(params.get("EST_TRIM_PITCH")) - 1.4) < 0.05,
+                            10.0), "\n".join(mp.lines[mark:])
+            assert math.degrees(params.get("EST_TRIM_ROLL")) == pytest.approx(-0.9, abs=0.05)
+            line = mp.wait_line("level calibration done", 5.0, mark)
+            assert line is not None, "\n".join(mp.lines[mark:])
+        finally:
+            mp.close()

@@ -6,7 +6,7 @@ A board taped into a fuselage sits a fraction of a degree off the airframe, and 
 accelerometer's cross-axis terms tilt its reading of gravity by as much again; in coordinated
 flight the specific force stays along the body's z axis, so no estimator can tell either from
 a tilt of the aircraft. Standing the aircraft level and reading the direction of gravity once
-(QGroundControl's "Level Horizon", MAVProxy's ``level``) measures their sum; `EST_TRIM_ROLL` and
+(MAV_CMD_PREFLIGHT_CALIBRATION with param5 = 2: MAVProxy's ``ahrstrim``) measures their sum; `EST_TRIM_ROLL` and
 `EST_TRIM_PITCH` then turn every sample back into airframe axes (companion.estimation.fusion).
 
 The reading also holds that moment's accelerometer bias, which is not a tilt: the filter

@@ -10,7 +10,7 @@ A filter divergence is repaired inside the filter and counted as an estimator fa
 (`faults`); it never raises, so it never costs a thread restart.
 
 Level calibration (the manager command ``calibrate_level``, from MAV_CMD_PREFLIGHT_CALIBRATION
-with param5 = 2, QGroundControl's "Level Horizon"): the next `LEVEL_CAL_S` of IMU samples,
+with param5 = 2, MAVProxy's ``ahrstrim``): the next `LEVEL_CAL_S` of IMU samples,
 in either phase, become `EST_TRIM_ROLL/PITCH` (companion.estimation.level), or a refusal that
 says why (moving, not 1 g, no samples).
 """
