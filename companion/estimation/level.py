@@ -21,7 +21,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-GRAVITY_M_S2 = 9.80665
+from companion.estimation.quat import GRAVITY_M_S2
+
 MIN_SAMPLES = 50
 """Half a second at 100 Hz: fewer is refused (noise would set the trim)."""
 MAX_GYRO_RMS_RAD_S = 0.05

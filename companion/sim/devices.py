@@ -12,6 +12,7 @@ would restate them.
 
 from __future__ import annotations
 
+import copy
 import datetime as dt
 import math
 from collections.abc import Sequence
@@ -44,8 +45,8 @@ from companion.drivers.servo_protocol import (
     encode_pilot,
     pilot_switch_auto,
 )
-from companion.estimation.level import GRAVITY_M_S2 as LEVEL_GRAVITY_M_S2
 from companion.estimation.level import LevelTrim, level_trim
+from companion.estimation.quat import GRAVITY_M_S2
 from companion.sim.imu_model import ImuErrorModel, independent_stream
 
 __all__ = [
@@ -243,11 +244,10 @@ class ImuSim:
         if sigma is None:
             return None
         roll, pitch = (float(v) for v in rng.normal(0.0, sigma, 2))
-        g = LEVEL_GRAVITY_M_S2
+        g = GRAVITY_M_S2
         accel = (g * math.sin(pitch), -g * math.sin(roll) * math.cos(pitch),
                  -g * math.cos(roll) * math.cos(pitch))
-        twin = ImuSim.__new__(ImuSim)
-        twin.__dict__.update(self.__dict__)
+        twin = copy.copy(self)
         twin.errors = self.errors.spare(rng)
         twin.frames, twin._sum, twin._count, twin._words = 0, [0.0] * 6, 0, ()
         decoder = ImuDecoder()
