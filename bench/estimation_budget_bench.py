@@ -1,6 +1,6 @@
 """What limits the GPS/INS estimator's inclination accuracy in SITL: an error budget.
 
-    .venv/bin/python bench/estimation_budget_bench.py             # 5 seeds x 14 worlds (~3 min)
+    .venv/bin/python bench/estimation_budget_bench.py             # 5 seeds x 20 worlds (~2 min)
     .venv/bin/python bench/estimation_budget_bench.py --seeds 2   # a quick look
 
 The accuracy bench (``estimation_sitl_bench.py``) says how far the estimator is from its
@@ -20,6 +20,11 @@ flies the same pilot, turbulence and remaining sensor errors in every world. The
 * bias dynamics: bias temperature drift (the warm-up), bias instability, bias random walk;
 * turn-on biases;
 * noise: white noise and engine vibration.
+
+The last worlds add instead of remove: the default world with the estimator given a heading
+fix of the airframe (truth plus noise, with or without a constant error) with each GPS fix.
+No simulated sensor provides one; they say what a heading reference would buy, and how
+unbiased it must be, since in a steady turn a heading error becomes a tilt error.
 
 This is the project's own simulator and its own assumed error sizes (docs/sitl.md): the
 figures rank the error sources of that model, not of a real aircraft.
@@ -98,6 +103,22 @@ WORLDS: dict[str, tuple[str, dict[str, Any], dict[str, Any], dict[str, float]]] 
                       {"imu_profile": "ideal", "gps_profile": "ideal", "turbulence": "none"},
                       {}, LAG_TOLD),
 }
+"""Each world: what it removes, FlightSpec fields, IMU error sizes, estimator parameters."""
+
+AIDED: dict[str, tuple[str, dict[str, float]]] = {
+    "+ heading fix 1 deg": ("nothing; a heading fix of the airframe is added with each GPS fix, "
+                            "1 deg 1-sigma white noise (no simulated sensor gives one)",
+                            {"heading_std_rad": math.radians(1.0)}),
+    "+ heading fix 0.5 deg off": ("the same fix with a constant 0.5 deg error (a heading "
+                                  "sensor's bias or mounting error)",
+                                  {"heading_std_rad": math.radians(1.0),
+                                   "heading_bias_rad": math.radians(0.5)}),
+    "+ heading fix 2 deg off": ("the same fix with a constant 2 deg error",
+                                {"heading_std_rad": math.radians(1.0),
+                                 "heading_bias_rad": math.radians(2.0)}),
+}
+"""Worlds flown as the default one, with the estimator given a heading reference: what the
+default world lacks (`EskfOptions.heading_std_rad`)."""
 
 WARMUP_S = 30.0
 
@@ -106,13 +127,18 @@ def fly(job: tuple[str, int, float]) -> tuple[str, int, dict[str, float]]:
     world, seed, duration_s = job
     from companion.evaluation.sitl import EskfOptions, FlightSpec, evaluate
 
-    _, spec_fields, imu_over, params = WORLDS[world]
+    aided: dict[str, float] = {}
+    if world in AIDED:
+        _, spec_fields, imu_over, params = WORLDS["default"]
+        aided = AIDED[world][1]
+    else:
+        _, spec_fields, imu_over, params = WORLDS[world]
     imu = None
     if imu_over:
         imu = dataclasses.replace(imu_profile(DEFAULT_IMU_PROFILE).config, **imu_over)
     spec = FlightSpec(aircraft="c172p", scenario="turns", seed=seed, duration_s=duration_s,
                       gps_latency_s=0.15, wind_ned_m_s=(0.0, 8.0, 0.0), imu=imu, **spec_fields)
-    res = evaluate(spec, {"eskf": EskfOptions(params=params)}, imu_only=())
+    res = evaluate(spec, {"eskf": EskfOptions(params=params, **aided)}, imu_only=())
     err = np.degrees(np.asarray(res.errors["eskf"].inclination_rad, dtype=float))
     keep = (res.t_s >= WARMUP_S) & np.isfinite(err)
     e = err[keep]
@@ -129,9 +155,10 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     if args.seeds < 1 or args.duration_s <= WARMUP_S + 10.0:
         ap.error("need --seeds >= 1 and --duration-s > 40")
-    jobs = [(w, s, args.duration_s) for w in WORLDS for s in range(args.seeds)]
+    names = [*WORLDS, *AIDED]
+    jobs = [(w, s, args.duration_s) for w in names for s in range(args.seeds)]
     t0 = time.monotonic()
-    figures: dict[str, dict[int, dict[str, float]]] = {w: {} for w in WORLDS}
+    figures: dict[str, dict[int, dict[str, float]]] = {w: {} for w in names}
     with ProcessPoolExecutor(args.jobs, mp_context=mp.get_context("fork")) as ex:
         for world, seed, fig in ex.map(fly, jobs):
             figures[world][seed] = fig
@@ -143,7 +170,8 @@ def main(argv: list[str]) -> int:
           "| p95 | max | per seed |")
     print("|---|---|---|---|---|---|---|")
     base = float(np.mean([f["rmse"] for f in figures["default"].values()]))
-    for world, (what, *_rest) in WORLDS.items():
+    descriptions = {**{w: v[0] for w, v in WORLDS.items()}, **{w: v[0] for w, v in AIDED.items()}}
+    for world, what in descriptions.items():
         per = [figures[world][s] for s in range(args.seeds)]
         rmse = float(np.mean([f["rmse"] for f in per]))
         p95 = float(np.mean([f["p95"] for f in per]))

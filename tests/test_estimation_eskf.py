@@ -313,6 +313,56 @@ def test_horizon_fixes_correct_tilt() -> None:
     assert s.faults == 0
 
 
+def test_heading_fixes_correct_heading() -> None:
+    """A heading fix pulls in a wrong heading that GPS cannot see (straight flight, no
+    horizontal acceleration); bad fixes are refused or gated."""
+    tr = fixed_wing_flight([Segment(40.0)])
+    imu = add_imu_errors(tr, IMU_ERRORS)
+    gps = gps_fixes(tr, rate_hz=10.0, latency_s=LATENCY_S, seed=4)
+    truth = quat_to_euler(tr.quat)
+    f = Eskf()
+    assert f.initialise(imu.accel_m_s2[0], np.zeros(3), np.zeros(3), np.zeros(3), None)
+    res = f.update_heading(0.0, 0.01)
+    assert not res.accepted and res.reason == "not_aligned"
+
+    def fly(heading_std_rad: float) -> tuple[Eskf, list[UpdateResult]]:
+        f = Eskf()
+        assert f.initialise(imu.accel_m_s2[0], np.zeros(3), gps.pos_ned_m[0],
+                            gps.vel_ned_m_s[0], truth[0, 2] + math.radians(10.0))
+        rng = np.random.default_rng(1)
+        outcomes = []
+        gi = 1
+        for k in range(1, len(tr.t_s)):
+            f.predict(imu.gyro_rad_s[k], imu.accel_m_s2[k], 0.01)
+            now = tr.t_s[k]
+            while gi < len(gps.t_report_s) and gps.t_report_s[gi] <= now + 1e-9:
+                f.update_gps(gps.pos_ned_m[gi], gps.vel_ned_m_s[gi], gps.pos_std_m,
+                             gps.vel_std_m_s, now - gps.t_valid_s[gi])
+                gi += 1
+                if heading_std_rad:
+                    noise = float(rng.normal(0.0, heading_std_rad))
+                    outcomes.append(f.update_heading(truth[k, 2] + noise, heading_std_rad))
+        return f, outcomes
+
+    def heading_error_deg(f: Eskf) -> float:
+        return abs(math.degrees(float(heading_error_rad(f.state().quaternion, tr.quat[-1]))))
+
+    blind, _ = fly(0.0)
+    assert heading_error_deg(blind) > 5.0  # nothing else sees the heading here
+    f, outcomes = fly(0.005)
+    assert outcomes[0].accepted and abs(outcomes[0].innovation[0]) > math.radians(9.0)
+    assert sum(r.accepted for r in outcomes) >= 0.99 * len(outcomes)
+    assert heading_error_deg(f) < 0.5
+    assert f.state().faults == 0
+    for bad in (math.nan, math.inf, "north"):
+        res = f.update_heading(bad, 0.01)  # type: ignore[arg-type]
+        assert not res.accepted and res.reason == "bad_input"
+    assert not f.update_heading(0.0, 0.0).accepted and not f.update_heading(0.0, -1.0).accepted
+    # a fix 30 deg off is gated, not swallowed
+    res = f.update_heading(truth[-1, 2] + math.radians(30.0), 0.005)
+    assert res.reason == "gated" and res.nis > res.gate
+
+
 def test_predict_cost(turn_flight: tuple[Trajectory, ImuRecording, GpsRecording]) -> None:
     tr, imu, gps = turn_flight
     f = Eskf()

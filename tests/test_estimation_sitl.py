@@ -256,3 +256,23 @@ def test_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None
     assert "### Accuracy" in text and "### Targets" in text
     with pytest.raises(SystemExit):
         bench.main(["--param", "NOPE=1"])
+
+
+def test_a_heading_reference_takes_out_the_tilt_error_of_turns_if_it_is_unbiased() -> None:
+    """In the realistic world the tilt error of steady turns is mostly the heading error seen
+    through the centripetal acceleration: an unbiased heading fix takes most of it out, a
+    biased one puts more in (docs/estimation.md; bench/estimation_budget_bench.py)."""
+    rec = record_flight(FlightSpec(aircraft="c172p", scenario="turns", seed=101, duration_s=90.0,
+                                   wind_ned_m_s=(0.0, 8.0, 0.0)))
+    scored = rec.t_s >= WARMUP_S
+
+    def incl_rms_deg(**aiding: float) -> float:
+        run = run_eskf(rec, EskfOptions(check_pd_every=1000, **aiding))
+        assert run.faults == 0 and run.exceptions == 0 and run.non_finite == 0
+        return rms_deg(filter_errors(rec, run.quat, run=run).inclination_rad[scored])
+
+    alone = incl_rms_deg()
+    aided = incl_rms_deg(heading_std_rad=math.radians(1.0))
+    biased = incl_rms_deg(heading_std_rad=math.radians(1.0), heading_bias_rad=math.radians(2.0))
+    assert aided < 0.8 * alone, (alone, aided)
+    assert biased > 1.5 * alone, (alone, biased)

@@ -67,6 +67,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
@@ -129,8 +130,9 @@ class UpdateResult:
 
     accepted: bool
     reason: str
-    """``ok``, ``yaw_aligned``, ``gated``, ``bad_input``, ``not_initialised``,
-    ``latency_out_of_range``, ``attitude_out_of_range`` or ``reset`` (a fault reset ran)."""
+    """``ok``, ``yaw_aligned``, ``gated``, ``bad_input``, ``not_initialised``, ``not_aligned``
+    (a heading fix before the heading is aligned), ``latency_out_of_range``,
+    ``attitude_out_of_range`` or ``reset`` (a fault reset ran)."""
     innovation: FloatArray = field(default_factory=lambda: np.zeros(0))
     nis: float = math.nan
     """Normalised innovation squared, ``y' S^-1 y``; chi-square with ``len(innovation)`` dof."""
@@ -316,6 +318,8 @@ class Eskf:
         self.gps_gate = chi2_ppf_even(gps_gate_prob, 6)
         self.max_gps_rejections = int(max_gps_rejections)
         self.attitude_gate = chi2_ppf_even(attitude_gate_prob, 2)
+        # one degree of freedom: the square of the two-sided normal quantile
+        self.heading_gate = NormalDist().inv_cdf(0.5 + 0.5 * attitude_gate_prob) ** 2
         self.max_attitude_rejections = int(max_attitude_rejections)
         self.horizon_std_rad = float(horizon_std_rad)
         self.yaw_align_min_speed_m_s = float(yaw_align_min_speed_m_s)
@@ -856,6 +860,52 @@ class Eskf:
             self._inflate(IDX_ATT, self.init_tilt_std_rad**2)
             return UpdateResult(False, "reset", y, result.nis, result.gate)
         return result
+
+    def update_heading(
+        self, yaw_rad: float, std_rad: float, latency_s: float = 0.0
+    ) -> UpdateResult:
+        """Fuse a heading fix of the airframe (a dual-antenna receiver's, a calibrated
+        magnetometer's after declination), ``std_rad`` its 1-sigma.
+
+        Why it matters: in a steady coordinated turn a heading error and a tilt about the turn's
+        radius leave the same mark on the GPS velocity (the centripetal acceleration seen
+        turned), so without a heading reference the filter splits that error between them and
+        the inclination error in a 30 deg bank is about tan(30 deg) times the heading error.
+        A fix before the heading is aligned (from the GPS course) is refused.
+        """
+        if not self._initialised:
+            return UpdateResult(False, "not_initialised")
+        try:
+            yaw, std, latency = float(yaw_rad), float(std_rad), float(latency_s)
+        except (TypeError, ValueError):
+            self.rejected_inputs += 1
+            return UpdateResult(False, "bad_input")
+        if not (all(math.isfinite(c) for c in (yaw, std, latency)) and std > 0.0
+                and latency >= 0.0):
+            self.rejected_inputs += 1
+            return UpdateResult(False, "bad_input")
+        if not self._yaw_aligned:
+            return UpdateResult(False, "not_aligned")
+        self._propagate_covariance()
+        past = self._state_at(self._t - latency)
+        if past is None:
+            return UpdateResult(False, "latency_out_of_range")
+        q_then = self._reported_q(past[2]) if self.trim_bias_tilt else past[2]
+        _roll, est_pitch, est_yaw = quat_to_euler_f(*q_then)
+        if abs(est_pitch) > math.radians(75.0):
+            return UpdateResult(False, "attitude_out_of_range")
+        y = np.array((float(wrap_pi(yaw - est_yaw)),))
+        t = math.tan(est_pitch)
+        h = np.zeros((1, N_STATES))
+        # the Euler yaw's error from the NED rotation-vector error (third row of M^-1)
+        h[0, 6:9] = (t * math.cos(est_yaw), t * math.sin(est_yaw), 1.0)
+        if latency > 0.0:
+            h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency
+        if self.trim_bias_tilt:
+            g = self.gravity_m_s2
+            h[:, IDX_ACCEL_BIAS] = h[:, 6:9] @ rotmat_f(*past[2]) @ np.array(
+                ((0.0, -1.0 / g, 0.0), (1.0 / g, 0.0, 0.0), (0.0, 0.0, 0.0)))
+        return self._kalman_update(y, h, np.eye(1) * (std * std), self.heading_gate)
 
     def _kalman_update(
         self, y: FloatArray, h: FloatArray, r: FloatArray, gate: float

@@ -510,6 +510,13 @@ class EskfOptions:
     eskf_kwargs: Mapping[str, float] = field(default_factory=dict)
     check_pd_every: int = 1
     """IMU ticks between explicit Cholesky checks of the covariance (1: every sample)."""
+    heading_std_rad: float = 0.0
+    """With each GPS fix, also fuse a heading fix of the airframe: the true heading plus this
+    much white noise (0: none). Stands for a heading sensor the simulated aircraft does not
+    carry (a dual-antenna receiver, a calibrated magnetometer): what one would buy."""
+    heading_bias_rad: float = 0.0
+    """A constant error of those heading fixes (a magnetometer's declination or interference
+    error, a dual-antenna baseline's mounting error), told to nobody."""
     measure_cpu: bool = False
     """Also take the thread CPU time of every step (``step_cpu_us``); the clock read costs
     tens of microseconds here, so only the timing study asks for it."""
@@ -557,6 +564,8 @@ class EskfRun:
     a second (every ``GYRO_MATRIX_EVERY`` ticks) after :func:`evaluate` compacts the run."""
 
 
+HEADING_SEED_OFFSET = 7919
+"""The heading fixes' noise has its own stream, seeded from the flight's seed plus this."""
 GYRO_MATRIX_EVERY = 100
 """Ticks between the gyro-matrix estimates a compacted run keeps (1 s at 100 Hz)."""
 
@@ -609,6 +618,7 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
     every = max(1, int(opts.check_pd_every))
     perf = time.perf_counter_ns
     cpu = time.thread_time_ns if opts.measure_cpu else _no_clock
+    heading_rng = np.random.default_rng(rec.spec.seed + HEADING_SEED_OFFSET)
     for k in range(n):
         sample = rec.imu[k]
         fix = rec.gps.get(k)
@@ -624,6 +634,11 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
                 # the slow block's temperature, once a second at its 0.01 C resolution
                 est.set_temperature(round(float(rec.imu_temperature_c[k]), 2))
             running = est.cycle(samples, fix, hzn)
+            if opts.heading_std_rad > 0.0 and fix is not None and est.filter is not None:
+                est.filter.update_heading(
+                    float(rec.euler_true_rad[k, 2]) + opts.heading_bias_rad
+                    + opts.heading_std_rad * float(heading_rng.standard_normal()),
+                    opts.heading_std_rad)
             t1 = perf()
             f = est.filter
             st = f.state() if f is not None and running else None
