@@ -56,7 +56,7 @@ position/velocity process noise block and the chi-square gates are closed forms
 scipy's ``chi2``, which are not imported in flight: half a second of start-up); filterpy's NEES
 helper is used in the tests.
 
-Size: the filter's prediction, updates (GPS, horizon, zero velocity), delayed-
+Size: the filter's prediction, updates (GPS, horizon, heading, zero velocity), delayed-
 measurement history and health checks are one piece of mathematics.
 """
 
