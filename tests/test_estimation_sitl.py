@@ -4,6 +4,7 @@ bench/estimation_sitl_bench.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -276,3 +277,33 @@ def test_a_heading_reference_takes_out_the_tilt_error_of_turns_if_it_is_unbiased
     biased = incl_rms_deg(heading_std_rad=math.radians(1.0), heading_bias_rad=math.radians(2.0))
     assert aided < 0.8 * alone, (alone, aided)
     assert biased > 1.5 * alone, (alone, biased)
+
+
+def test_a_dual_antenna_receiver_through_the_decoder_meets_the_turn_accuracy() -> None:
+    """The same flight with the dual-antenna profile: its HDT goes through the NMEA decoder
+    and the estimator core; HDG_USE 0 gives back the single-antenna flight exactly."""
+    spec = FlightSpec(aircraft="c172p", scenario="turns", seed=101, duration_s=90.0,
+                      wind_ned_m_s=(0.0, 8.0, 0.0))
+    single = record_flight(spec)
+    dual = record_flight(dataclasses.replace(spec, gps_profile="dual-antenna"))
+    assert all(fix.heading_deg is not None for fix in dual.gps.values() if fix.fix > 0)
+    assert all(fix.heading_deg is None for fix in single.gps.values())
+    scored = single.t_s >= WARMUP_S
+
+    def incl(rec: SitlRecording, **params: float) -> tuple[np.ndarray, EskfRun]:
+        run = run_eskf(rec, EskfOptions(check_pd_every=1000, params=params))
+        assert run.faults == 0 and run.exceptions == 0 and run.non_finite == 0
+        return filter_errors(rec, run.quat, run=run).inclination_rad[scored], run
+
+    single_err, _ = incl(single)
+    dual_err, _ = incl(dual)
+    blind_err, _ = incl(dual, HDG_USE=0)
+    assert np.array_equal(blind_err, single_err, equal_nan=True)
+    assert rms_deg(dual_err) < 0.8 * rms_deg(single_err), (rms_deg(single_err), rms_deg(dual_err))
+    assert rms_deg(dual_err) < 0.5 and math.degrees(float(dual_err.max())) < 2.0
+    # antennas across the wings (first left): the receiver reads 90 deg more, HDG_OFS takes it off
+    across = dataclasses.replace(dual, gps={
+        k: dataclasses.replace(fix, heading_deg=(fix.heading_deg + 90.0) % 360.0)
+        if fix.heading_deg is not None else fix for k, fix in dual.gps.items()})
+    across_err, _ = incl(across, HDG_OFS=math.pi / 2)
+    assert np.allclose(across_err, dual_err, atol=1e-4, equal_nan=True)

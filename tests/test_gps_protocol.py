@@ -471,3 +471,44 @@ def test_corrupted_capture_never_yields_data_that_was_not_sent(
             assert abs(sol.alt_m - ref.alt_m) < 3.01
         if sol.speed_m_s is not None:
             assert sol.speed_m_s == pytest.approx(ref.speed_m_s, abs=0.01)
+
+
+# --- dual-antenna heading (HDT) -----------------------------------------------------------------
+
+GST = "GPGST,123519.00,,,,,1.200,1.100,2.300"
+
+
+def test_hdt_heading_travels_with_its_epoch_when_expected() -> None:
+    # a dual-antenna receiver sends HDT after the timed sentences: expected, it completes the
+    # epoch; not expected, it would be credited to the next one (the GPS_HDT parameter)
+    data = s(GGA) + s(RMC) + s(GST) + s("GNHDT,271.25,T") + s(GGA2)
+    sols, decoder = decode(data, expected_sentences=["GGA", "RMC", "GST", "HDT"])
+    assert [sol.heading_deg for sol in sols] == [271.25, None]
+    assert sols[0].sentences == ("GPGGA", "GPRMC", "GPGST", "GNHDT")
+    assert decoder.counters.malformed == 0
+    sols, _ = decode(data, expected_sentences=["GGA", "RMC", "GST"])
+    assert [sol.heading_deg for sol in sols] == [None, 271.25]
+
+
+def test_hdt_without_a_heading_solution_and_malformed_hdt() -> None:
+    (sol,), decoder = decode(s(GGA) + s("GPHDT,,T"))
+    assert sol.heading_deg is None and decoder.counters.malformed == 0
+    (sol,), _ = decode(s(GGA) + s("GPHDT,360.00,T"))
+    assert sol.heading_deg == 0.0
+    for body in ("GPHDT,271.2,M", "GPHDT,371.0,T", "GPHDT,-1.0,T", "GPHDT,2x1,T", "GPHDT,nan,T"):
+        out, decoder = decode(s(GGA) + s(body))
+        assert decoder.counters.malformed == 1, body
+        assert [sol.heading_deg for sol in out] == [None], body
+
+
+def test_hdt_encodes_and_decodes_back() -> None:
+    sol = GpsSolution(utc=45319.0, lat_deg=48.1, lon_deg=11.5, alt_m=500.0, fix=1, sats=9,
+                      speed_m_s=20.0, course_deg=90.0, heading_deg=93.456)
+    data = encode_epoch(sol, "GN", ("GGA", "RMC", "HDT"))
+    assert data.endswith(s("GNHDT,93.46,T"))
+    (back,), _ = decode(data, expected_sentences=["GGA", "RMC", "HDT"])
+    assert back.heading_deg == pytest.approx(93.46) and back.course_deg == pytest.approx(90.0)
+    without = encode_epoch(GpsSolution(utc=45319.0, fix=0), "GP", ("GGA", "HDT"))
+    assert without.endswith(s("GPHDT,,T"))
+    with pytest.raises(ValueError, match="heading_deg"):
+        encode_epoch(GpsSolution(utc=45319.0, heading_deg=math.inf), "GP", ("HDT",))

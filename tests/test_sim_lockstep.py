@@ -172,6 +172,20 @@ def test_supervision_runs_on_simulated_time(tmp_path: Path) -> None:
         assert threads[name]["restarts"] == 0, threads[name]
 
 
+def test_a_dual_antenna_receiver_reaches_the_estimator(tmp_path: Path) -> None:
+    """The profile's HDT goes through the driver (GPS_HDT set, as a user would) into the fix,
+    the log and the estimator's heading update."""
+    summary, fdir = fly(tmp_path, 20.0, scenario="turns", seed=2, gps_profile="dual-antenna")
+    threads = {t["name"]: t for t in summary["threads"]}
+    gps = threads["gps"]["counters"]
+    assert gps["malformed"] == 0 and gps["epochs"] >= 190
+    assert gps["sentences_good"] == 6 * gps["epochs"]  # HDT with each epoch, in the epoch
+    est = threads["estimator"]["counters"]
+    assert est["heading_used"] >= 0.9 * est["gps_accepted"] > 0 and est["heading_rejected"] == 0
+    heading = read_log(fdir / "gps.bin").data(1)["heading_deg"]
+    assert np.isfinite(heading).all() and ((heading >= 0.0) & (heading < 360.0)).all()
+
+
 def test_cli_lockstep_flight_and_what_it_refuses(tmp_path: Path) -> None:
     base = [sys.executable, "-m", "companion", "sim", "--lockstep",
             "--log-dir", str(tmp_path / "flights"), "--params-file", str(tmp_path / "p.parm")]

@@ -21,6 +21,7 @@ from companion.sim.profiles import (
     TURBULENCE,
     gps_profile,
     imu_profile,
+    perfect_gps,
     resolve_sensors,
 )
 
@@ -190,6 +191,33 @@ def test_gps_correlated_error_and_multipath() -> None:
     lag1 = np.corrcoef(err[:-1, 0], err[1:, 0])[0, 1]
     assert lag1 > 0.8  # dominated by the slowly varying part, not white
     assert np.abs(err[:, :2]).max() < 8 * math.hypot(cfg.gm_horiz_m, cfg.horiz_white_m)
+
+
+def test_dual_antenna_heading_noise_mounting_and_no_effect_on_other_receivers() -> None:
+    cfg = gps_profile("dual-antenna").config
+    assert "HDT" in cfg.sentences and cfg.heading_std_deg > 0.0
+    sim = GpsSim(np.random.default_rng(11), cfg)
+    errors = []
+    for k in range(3000):
+        data = sim.epoch(3600.0 + k / 10, 45.0, 9.0, 300.0, 20.0, 0.0, 0.0, 359.9)
+        assert b"HDT," in data
+        sol = sim.last_solution
+        assert sol is not None
+        if sol.fix:
+            assert sol.heading_deg is not None and 0.0 <= sol.heading_deg < 360.0
+            errors.append((sol.heading_deg - 359.9 + 180.0) % 360.0 - 180.0)
+    err = np.array(errors)
+    assert abs(sim.heading_mount_deg) > 0.0  # drawn once per receiver
+    assert float(np.mean(err)) == pytest.approx(sim.heading_mount_deg, abs=0.03)
+    assert float(np.std(err)) == pytest.approx(cfg.heading_std_deg, rel=0.1)
+    # the heading's draws are a stream of their own: the position errors are the M8's
+    m8 = GpsSim(np.random.default_rng(11), gps_profile("ublox-m8").config)
+    dual = GpsSim(np.random.default_rng(11), cfg)
+    for k in range(200):
+        a = m8.epoch(3600.0 + k / 10, 45.0, 9.0, 300.0, 20.0, 0.0, 0.0, 90.0)
+        b = dual.epoch(3600.0 + k / 10, 45.0, 9.0, 300.0, 20.0, 0.0, 0.0, 90.0)
+        assert b.startswith(a) and b"HDT," not in a
+    assert perfect_gps(cfg).heading_std_deg == 0.0 and perfect_gps(cfg).perfect
 
 
 def test_gps_rate_must_divide_the_tick() -> None:

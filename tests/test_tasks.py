@@ -175,13 +175,15 @@ def test_a_driver_that_supplies_decode_and_publish_gets_the_whole_read_path(
 
 def test_the_gps_log_format_is_the_fix_record_itself() -> None:
     layout = RecordLayout.of(GpsFix)
-    # the layout gps.bin has always had (docs/logs.md): derived now, not hand-listed
+    # the layout gps.bin has always had, derived now, not hand-listed; a dual-antenna
+    # receiver's heading came last, so older readers' columns keep their places
     assert layout.fmt == ("%.3f,%.9lf,%.9lf,%.3f,%hhu,%hhu,%.2f,%.2f,%.2f,%.2f,%.3f,%.2f,"
-                          "%.3f,%.3f,%.3f,%.3f,%.3f,%.2f")
-    assert layout.names[-1] == "latency_ms" and len(layout.names) == 18
+                          "%.3f,%.3f,%.3f,%.3f,%.3f,%.2f,%.2f")
+    assert list(layout.names[-2:]) == ["latency_ms", "heading_deg"] and len(layout.names) == 19
     values = layout.values(GpsFix(0, 1.5, 43.0, 10.0, None, 1, None, latency_s=0.05))
     assert values[:3] == (1.5, 43.0, 10.0) and values[3] != values[3]  # NaN for a missing float
-    assert values[4:6] == (1, 0) and values[-1] == pytest.approx(50.0)
+    assert values[4:6] == (1, 0) and values[-2] == pytest.approx(50.0)
+    assert values[-1] != values[-1]  # no heading: NaN
     assert re.fullmatch(r"[a-z_]+", "_".join(layout.names))
 
 

@@ -71,6 +71,8 @@ class GpsFix:
     h_std_m: float | None = logged("%.3f")
     latency_s: float | None = logged("%.2f", column="latency_ms", scale=1e3)
     """Receiver-to-driver latency as measured by the driver (first byte to hand-off)."""
+    heading_deg: float | None = logged("%.2f")
+    """True heading of a dual-antenna receiver's baseline (HDT), 0..360; None without one."""
 
 
 @fast_frozen

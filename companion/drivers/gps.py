@@ -45,7 +45,7 @@ def solution_to_fix(sol: GpsSolution, t_ns: int) -> GpsFix:
         ve_m_s=sol.ve_m_s, vd_m_s=sol.vd_m_s, alt_std_m=sol.alt_std_m,
         h_std_m=(math.hypot(sol.lat_std_m, sol.lon_std_m)
                  if sol.lat_std_m is not None and sol.lon_std_m is not None else None),
-        latency_s=sol.latency_s)
+        latency_s=sol.latency_s, heading_deg=sol.heading_deg)
 
 
 class GpsDriver(SerialDevice):
@@ -68,8 +68,9 @@ class GpsDriver(SerialDevice):
         epochs that waited in the port's buffer (the process was suspended or starved)."""
 
     @staticmethod
-    def _new_decoder(*, allow_no_checksum: bool, idle_ms: int, pashr: bool = False) -> NmeaDecoder:
-        expected = EXPECTED + (("POS",) if pashr else ())
+    def _new_decoder(*, allow_no_checksum: bool, idle_ms: int, pashr: bool = False,
+                     hdt: bool = False) -> NmeaDecoder:
+        expected = EXPECTED + (("POS",) if pashr else ()) + (("HDT",) if hdt else ())
         return NmeaDecoder(allow_no_checksum=allow_no_checksum, expected_sentences=expected,
                            idle_handoff_ms=idle_ms)
 
@@ -83,6 +84,9 @@ class GpsDriver(SerialDevice):
             int_param(f"{p}_PASHR", 0, 0, 1, "",
                       "1: the receiver sends Ashtech $PASHR,POS every epoch; an epoch is complete "
                       "only with it (otherwise it would arrive after the hand-off)."),
+            int_param(f"{p}_HDT", 0, 0, 1, "",
+                      "1: a dual-antenna receiver sends $--HDT (true heading) every epoch; an "
+                      "epoch is complete only with it, so the heading travels with its own fix."),
         ]
 
     def define_logs(self, tlog: Any) -> None:
@@ -92,9 +96,11 @@ class GpsDriver(SerialDevice):
     def configure(self) -> None:
         super().configure()
         pashr = bool(self.param("PASHR"))
-        if pashr != ("POS" in self.decoder.expected):
+        hdt = bool(self.param("HDT"))
+        if pashr != ("POS" in self.decoder.expected) or hdt != ("HDT" in self.decoder.expected):
             self.decoder = self._new_decoder(allow_no_checksum=bool(self.param("NO_CKSUM")),
-                                             idle_ms=int(self.param("IDLE_MS")), pashr=pashr)
+                                             idle_ms=int(self.param("IDLE_MS")), pashr=pashr,
+                                             hdt=hdt)
         self.decoder.allow_no_checksum = bool(self.param("NO_CKSUM"))
         self.decoder.idle_handoff_ns = int(self.param("IDLE_MS")) * 1_000_000
 
@@ -112,7 +118,8 @@ class GpsDriver(SerialDevice):
     def recover(self) -> None:
         self.decoder = self._new_decoder(allow_no_checksum=bool(self.param("NO_CKSUM")),
                                          idle_ms=int(self.param("IDLE_MS")),
-                                         pashr=bool(self.param("PASHR")))
+                                         pashr=bool(self.param("PASHR")),
+                                         hdt=bool(self.param("HDT")))
 
     def decode(self, data: bytes | None, t_ns: int) -> Iterable[object]:
         solutions = self.decoder.feed(data, t_ns) if data else []

@@ -51,7 +51,8 @@ MAX_LINE_CHARS = 120
 
 TALKERS = ("GN", "GP", "GL", "GA", "GB")
 """Accepted talker IDs, in order of preference when two talkers send the same sentence."""
-USED_SENTENCES = frozenset({"GGA", "RMC", "VTG", "GSA", "GST"})
+USED_SENTENCES = frozenset({"GGA", "RMC", "VTG", "GSA", "GST", "HDT"})
+"""Sentence types decoded; ``HDT`` (true heading) comes from dual-antenna receivers."""
 DEFAULT_SENTENCES = ("GGA", "RMC", "VTG", "GSA", "GST")
 _TIMED = frozenset({"GGA", "RMC", "GST", "POS"})
 
@@ -122,6 +123,9 @@ class GpsSolution:
     alt_std_m: float | None = None
     lat_std_m: float | None = None
     lon_std_m: float | None = None
+    heading_deg: float | None = None
+    """True heading of the antenna baseline, 0..360 (HDT: a dual-antenna receiver's; the
+    course over ground says where the aircraft goes, this where it points)."""
     latency_s: float | None = None
     """Hand-off time minus arrival time of the epoch's first byte (decoder's clock)."""
     first_byte_t_ns: int | None = None
@@ -298,6 +302,16 @@ def _gst(msg: pynmea2.NMEASentence) -> Record:
     }
 
 
+def _hdt(msg: pynmea2.NMEASentence) -> Record:
+    heading = _float(msg, "heading")
+    flag = _field(msg, "hdg_true")
+    if flag != "T":
+        raise _Malformed(f"field hdg_true={flag!r} is not T")
+    if heading is not None and not 0.0 <= heading <= 360.0:
+        raise _Malformed(f"field heading={heading!r} is not within 0..360")
+    return {"heading_deg": None if heading is None else heading % 360.0}
+
+
 def _pos(msg: pynmea2.NMEASentence) -> Record:
     record: Record = {"utc": _utc(msg)}
     _latlon(msg, record)
@@ -321,6 +335,7 @@ _EXTRACT: dict[str, Callable[[pynmea2.NMEASentence], Record]] = {
     "VTG": _vtg,
     "GSA": _gsa,
     "GST": _gst,
+    "HDT": _hdt,
     "POS": _pos,
 }
 
@@ -360,8 +375,8 @@ class NmeaDecoder:
 
     An epoch is handed off when a sentence with a different UTC time arrives, when every type in
     ``expected_sentences`` (talker-free names: ``GGA``, ``RMC``, ``VTG``, ``GSA``, ``GST``,
-    ``POS``) has arrived, on :meth:`flush`, or on :meth:`poll` once the line has been quiet for
-    ``idle_handoff_ms``. Sentences without a time (VTG, GSA) join the open epoch, or the next one
+    ``HDT``, ``POS``) has arrived, on :meth:`flush`, or on :meth:`poll` once the line has been quiet for
+    ``idle_handoff_ms``. Sentences without a time (VTG, GSA, HDT) join the open epoch, or the next one
     if none is open; so ``expected_sentences`` should list every type the receiver sends, or a
     trailing untimed sentence is credited to the following epoch. When two talkers send the same
     sentence type in one epoch, the one earlier in :data:`TALKERS` wins (GN before GP).
@@ -579,6 +594,7 @@ class NmeaDecoder:
         vtg = parts.get("VTG", empty)
         gsa = parts.get("GSA", empty)
         gst = parts.get("GST", empty)
+        hdt = parts.get("HDT", empty)
         pos = parts.get("POS", empty)
 
         lat = lon = None
@@ -630,6 +646,7 @@ class NmeaDecoder:
             alt_std_m=gst.get("alt_std_m"),
             lat_std_m=gst.get("lat_std_m"),
             lon_std_m=gst.get("lon_std_m"),
+            heading_deg=hdt.get("heading_deg"),
             latency_s=(t_ns - epoch.first_t_ns) / 1e9,
             first_byte_t_ns=epoch.first_t_ns,
             handoff_t_ns=t_ns,
@@ -683,7 +700,8 @@ def _ground_track(sol: GpsSolution) -> tuple[float | None, float | None]:
 
 
 def _check_finite(sol: GpsSolution) -> None:
-    for name in ("utc", "lat_deg", "lon_deg", "alt_m", "speed_m_s", "course_deg", "vd_m_s"):
+    for name in ("utc", "lat_deg", "lon_deg", "alt_m", "speed_m_s", "course_deg", "vd_m_s",
+                 "heading_deg"):
         value = getattr(sol, name)
         if value is not None and not math.isfinite(value):
             raise ValueError(f"GpsSolution.{name} must be finite, got {value!r}")
@@ -752,8 +770,11 @@ def encode_epoch(
                 f"GST,{time_text},,,,,{_fmt(solution.lat_std_m, '.3f')},"
                 f"{_fmt(solution.lon_std_m, '.3f')},{_fmt(solution.alt_std_m, '.3f')}"
             )
+        elif kind == "HDT":  # empty heading: the receiver has no heading solution
+            body = f"HDT,{_fmt(solution.heading_deg, '.2f')},T"
         else:
-            raise ValueError(f"sentences: cannot encode {kind!r}; use {DEFAULT_SENTENCES}")
+            raise ValueError(f"sentences: cannot encode {kind!r}; use "
+                             f"{', '.join(sorted(USED_SENTENCES))}")
         out += nmea_sentence(talker + body)
     if ashtech_pos:
         out += nmea_sentence(_pashr_pos(solution, time_text, speed, course))

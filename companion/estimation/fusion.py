@@ -89,6 +89,8 @@ class EstimatorCore:
         self.gps_accepted = 0
         self.gps_rejected = 0
         self.horizon_used = 0
+        self.heading_used = 0
+        self.heading_rejected = 0
         self.temperature_readings = 0
         self.last_imu: ImuSample | None = None
         """The newest sample taken in, for its time (its axes may be the board's: the rates
@@ -317,7 +319,22 @@ class EstimatorCore:
             self.gps_accepted += 1
         else:
             self.gps_rejected += 1
+        if fix.heading_deg is not None and self.p.get("HDG_USE", 0.0):
+            self.fuse_heading(fix.heading_deg, latency)
         return res, latency
+
+    def fuse_heading(self, heading_deg: float, latency_s: float) -> bool:
+        """A dual-antenna receiver's heading (HDT) of the same epoch as the fix, the baseline's
+        yaw on the airframe (`HDG_OFS`) taken off; False when the filter refused it."""
+        f = self.filter
+        if f is None or not math.isfinite(heading_deg):
+            return False
+        yaw = math.radians(heading_deg) - self.p.get("HDG_OFS", 0.0)
+        if f.update_heading(yaw, self.p.get("HDG_STD", 0.01), latency_s).accepted:
+            self.heading_used += 1
+            return True
+        self.heading_rejected += 1
+        return False
 
     def set_temperature(self, temperature_c: float) -> None:
         """The IMU's temperature from its slow block: lets the biases follow a warm-up."""

@@ -142,6 +142,18 @@ class EstimatorThread(ManagedThread):
                       "1 fuses horizon attitude (HORIZON_ATTITUDE / MAVLink) weighted by quality."),
             float_param(f"{p}_HZN_STD", 0.05, 0.001, 1.0, "rad",
                         "Horizon roll/pitch 1-sigma at quality 1."),
+            int_param(f"{p}_HDG_USE", 1, 0, 1, "",
+                      "1 fuses a dual-antenna receiver's heading (NMEA HDT, GPS_HDT) with its "
+                      "fix. Only an unbiased heading helps: in a turn a heading error becomes "
+                      "a tilt error, so measure HDG_OFS on the ground."),
+            float_param(f"{p}_HDG_STD", 0.01, 0.0001, 1.0, "rad",
+                        "1-sigma of the receiver's heading (about the relative position's "
+                        "error over the antenna baseline: 0.01 rad for 5 mm over 0.5 m)."),
+            float_param(f"{p}_HDG_OFS", 0.0, -math.pi, math.pi, "rad",
+                        "Yaw of the antenna baseline (first to second antenna) against the "
+                        "airframe's forward axis, clockwise: 0 with the second antenna straight "
+                        "ahead of the first, pi/2 with the first on the left wing and the "
+                        "second on the right."),
         ]
 
     def define_logs(self, tlog: Any) -> None:
@@ -307,7 +319,8 @@ class EstimatorThread(ManagedThread):
         core = self.core
         if core is not None:
             out.update(gps_accepted=core.gps_accepted, gps_rejected=core.gps_rejected,
-                       horizon_used=core.horizon_used,
+                       horizon_used=core.horizon_used, heading_used=core.heading_used,
+                       heading_rejected=core.heading_rejected,
                        temperature_readings=core.temperature_readings)
         return out
 

@@ -388,7 +388,8 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
                                    item.gyro_ok, item.accel_ok)
         if (k + 1) % gps_every == 0:
             epoch = gps_sim.epoch(START_UTC_S + t, state.lat_deg, state.lon_deg, state.alt_m,
-                                  state.vn_m_s, state.ve_m_s, state.vd_m_s)
+                                  state.vn_m_s, state.ve_m_s, state.vd_m_s,
+                                  math.degrees(state.yaw_rad))
             gps_queue.append((t + gps_sim.last_latency_s, epoch))
             gps_epochs.append((t, gps_sim.last_latency_s, not gps_sim.in_outage))
             sol = gps_sim.last_solution

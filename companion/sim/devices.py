@@ -359,6 +359,12 @@ class GpsSimConfig:
     outage_per_h: float = 0.0
     """Rate of outages (no fix) and their length."""
     outage_s: float = 0.0
+    heading_std_deg: float = 0.0
+    """1-sigma of the true heading a dual-antenna receiver sends (``HDT`` in ``sentences``);
+    white, epoch to epoch."""
+    heading_mount_deg: float = 0.0
+    """1-sigma of the antenna baseline's yaw error on the airframe, drawn once: what the
+    ground measurement of the baseline's direction left (the receiver cannot see it)."""
 
     def __post_init__(self) -> None:
         every = 100.0 / self.rate_hz if self.rate_hz > 0 else math.inf
@@ -366,7 +372,8 @@ class GpsSimConfig:
             raise ValueError(f"GpsSimConfig.rate_hz must divide 100 Hz (1, 2, 5, 10 ...), "
                              f"got {self.rate_hz!r}")
         for name in ("latency_s", "latency_jitter_s", "gm_horiz_m", "gm_vert_m",
-                     "multipath_per_h", "multipath_m", "outage_per_h", "outage_s"):
+                     "multipath_per_h", "multipath_m", "outage_per_h", "outage_s",
+                     "heading_std_deg", "heading_mount_deg"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"GpsSimConfig.{name} must be finite and >= 0, got {value!r}")
@@ -381,7 +388,7 @@ class GpsSimConfig:
         return not (self.horiz_white_m or self.vert_white_m or self.horiz_walk_m_sqrt_s
                     or self.vert_walk_m_sqrt_s or self.vel_noise_m_s or self.latency_jitter_s
                     or self.gm_horiz_m or self.gm_vert_m or self.multipath_per_h
-                    or self.outage_per_h)
+                    or self.outage_per_h or self.heading_std_deg or self.heading_mount_deg)
 
     @property
     def expected_sentences(self) -> tuple[str, ...]:
@@ -421,6 +428,15 @@ class GpsSim:
         self.in_outage = False
         """Whether the last epoch fell in an outage (no fix)."""
         self.outages = 0
+        self._heading_rng: np.random.Generator | None = None
+        self.heading_mount_deg = 0.0
+        """The baseline's drawn yaw error on the airframe (deg; 0 without HDT)."""
+        if "HDT" in cfg.sentences:
+            # a stream of its own, jumped off the extra one: receivers without a heading keep
+            # every earlier draw
+            self._heading_rng = independent_stream(self._extra)
+            self.heading_mount_deg = cfg.heading_mount_deg * float(
+                self._heading_rng.standard_normal())
 
     def epoch(
         self,
@@ -431,8 +447,10 @@ class GpsSim:
         vn_m_s: float,
         ve_m_s: float,
         vd_m_s: float,
+        heading_deg: float | None = None,
     ) -> bytes:
-        """Return one epoch's sentences; ``utc_s`` counts seconds from midnight of ``config.date``."""
+        """Return one epoch's sentences; ``utc_s`` counts seconds from midnight of ``config.date``.
+        ``heading_deg`` is the airframe's true heading (an HDT receiver's truth)."""
         cfg = self.config
         truth = (utc_s, lat_deg, lon_deg, alt_m, vn_m_s, ve_m_s, vd_m_s)
         if not all(math.isfinite(v) for v in truth):
@@ -490,9 +508,18 @@ class GpsSim:
                 vn_m_s=vn,
                 ve_m_s=ve,
                 vd_m_s=vd,
+                heading_deg=self._heading(heading_deg),
             )
         self.last_solution = solution
         return encode_epoch(solution, cfg.talker, cfg.sentences, cfg.ashtech_pos)
+
+    def _heading(self, true_deg: float | None) -> float | None:
+        """The baseline's heading as the receiver reports it (None: no HDT, or no truth)."""
+        rng = self._heading_rng
+        if rng is None or true_deg is None or not math.isfinite(true_deg):
+            return None
+        noise = self.config.heading_std_deg * float(rng.standard_normal())
+        return (true_deg + self.heading_mount_deg + noise) % 360.0
 
     def _extra_terms(self, utc_s: float, dt_s: float, error_m: list[float]) -> bool:
         """Add the correlated and multipath errors to ``error_m``, draw this epoch's latency;

@@ -201,8 +201,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             extra_bridges=[inject] if faults else []))
         if sim.gps_ashtech:
             rt.ctx.params.set("GPS_PASHR", 1)
-        if world.level_cal is not None:  # the installation's level calibration (runner.py)
-            rt.ctx.params.set_many(world.level_cal.params())
+        # the installation's level calibration and receiver settings (runner.py)
+        rt.ctx.params.set_many(world.runtime_params())
         if on_runtime is not None:
             on_runtime(rt)
         # no ground links here: the camera's fixes go into the slot the legacy adapter writes,

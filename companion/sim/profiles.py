@@ -213,6 +213,17 @@ _DG16 = GpsSimConfig(
     multipath_per_h=6.0, multipath_m=2.0, multipath_tau_s=20.0,
     outage_per_h=2.0, outage_s=5.0,
 )
+# A dual-antenna receiver (two RTK-capable receivers in moving-base mode, or one
+# dual-antenna module) sending NMEA HDT each epoch. Its position is a standalone fix (no
+# corrections from a ground base): the M8 class's errors. Its heading is the baseline's
+# direction from the carrier-phase relative position of the two antennas: about that
+# position's error over the baseline's length. RTK-class receivers give 0.01 m + 1 ppm CEP
+# (about 5 mm 1-sigma per axis over a short baseline): 0.29 deg over 1 m (assumed). The
+# baseline's direction measured against the airframe on the ground: 0.2 deg 1-sigma left
+# (3.5 mm over 1 m, assumed).
+_DUAL_ANTENNA = dataclasses.replace(
+    _UBLOX, sentences=("GGA", "RMC", "VTG", "GSA", "GST", "HDT"), heading_std_deg=0.29,
+    heading_mount_deg=0.2)
 _IDEAL_GPS = GpsSimConfig(horiz_white_m=0.0, vert_white_m=0.0, horiz_walk_m_sqrt_s=0.0,
                           vert_walk_m_sqrt_s=0.0, vel_noise_m_s=0.0)
 
@@ -222,6 +233,8 @@ GPS_PROFILES: dict[str, GpsProfile] = {
     "simple": GpsProfile("simple", "the original simple model (white + random walk, fixed "
                          "latency)", GpsSimConfig()),
     "ideal": GpsProfile("ideal", "a perfect receiver (fixed latency, no error)", _IDEAL_GPS),
+    "dual-antenna": GpsProfile("dual-antenna", "a dual-antenna receiver with a 1 m baseline "
+                               "(M8-class position, HDT heading)", _DUAL_ANTENNA),
 }
 
 TURBULENCE: dict[str, int] = {"none": 0, "light": 3, "moderate": 4, "severe": 6}
@@ -261,7 +274,8 @@ def perfect_gps(config: GpsSimConfig) -> GpsSimConfig:
     return dataclasses.replace(
         config, horiz_white_m=0.0, vert_white_m=0.0, horiz_walk_m_sqrt_s=0.0,
         vert_walk_m_sqrt_s=0.0, vel_noise_m_s=0.0, latency_jitter_s=0.0, gm_horiz_m=0.0,
-        gm_vert_m=0.0, multipath_per_h=0.0, outage_per_h=0.0)
+        gm_vert_m=0.0, multipath_per_h=0.0, outage_per_h=0.0, heading_std_deg=0.0,
+        heading_mount_deg=0.0)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import select
 import signal
@@ -399,6 +400,14 @@ class World:
             self.stop_reason = f"flight model: {exc}"
             log.error("flight model stopped: %s", exc)
 
+    def runtime_params(self) -> dict[str, float]:
+        """Parameters a user would set for this installation: the level calibration's trims,
+        and GPS_HDT when the receiver sends a heading every epoch."""
+        params: dict[str, float] = dict(self.level_cal.params()) if self.level_cal else {}
+        if "HDT" in self.gps.config.sentences:
+            params["GPS_HDT"] = 1
+        return params
+
     def close_lockstep(self, host_s: float) -> dict[str, Any]:
         """End a lockstep world: its truth log closed, its figures."""
         self._camera_stats = self._close_camera()
@@ -458,7 +467,8 @@ class World:
         if self.ticks % self.gps_every == 0:
             epoch = self.gps.epoch(self.start_utc_s + self.t_s + self._utc_step_s(),
                                    truth.lat_deg, truth.lon_deg,
-                                   truth.alt_m, truth.vn_m_s, truth.ve_m_s, truth.vd_m_s)
+                                   truth.alt_m, truth.vn_m_s, truth.ve_m_s, truth.vd_m_s,
+                                   math.degrees(truth.yaw_rad))
             # each epoch late by its own draw; the serial line keeps them in order
             self.gps_queue.append((self.t_s + self.gps.last_latency_s, epoch))
         while self.gps_queue and self.gps_queue[0][0] <= self.t_s + 1e-9:
@@ -612,7 +622,7 @@ def main(argv: list[str] | None = None) -> int:
     frame = world.model.frame
     ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in DEVICES}
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
-    ready["params"] = world.level_cal.params() if world.level_cal is not None else {}
+    ready["params"] = world.runtime_params()
     print("READY " + json.dumps(ready), flush=True)
     # Fly only once the runtime has opened its ports: until then nobody would read the devices.
     # The GO line may carry what only the started runtime knows: `GO {"horizon_dest": ...}`.
