@@ -146,6 +146,16 @@ def home_position(core: BridgeCore, _value: object = None) -> list[Msg]:
 
 
 # ------------------------------------------------------------------------------- GPS
+def _gps_yaw_cdeg(core: BridgeCore, heading_deg: float | None) -> int:
+    """GPS_RAW_INT.yaw: a dual-antenna receiver's heading turned into the airframe's by the
+    baseline's yaw on it (EST_HDG_OFS); 0 says "no yaw", so north is 36000."""
+    if heading_deg is None or not math.isfinite(heading_deg):
+        return 0
+    params = core.ctx.params
+    offset_deg = math.degrees(float(params.get("EST_HDG_OFS"))) if "EST_HDG_OFS" in params else 0.0
+    return int(round(((heading_deg - offset_deg) % 360.0) * 100.0)) % 36000 or 36000
+
+
 def gps_raw_int(core: BridgeCore, fix: GpsFix) -> list[Msg]:
     if fix.lat_deg is None or fix.lon_deg is None:
         fix_type = mavlink.GPS_FIX_TYPE_NO_FIX
@@ -165,7 +175,7 @@ def gps_raw_int(core: BridgeCore, fix: GpsFix) -> list[Msg]:
         0,
         clamp_int(None if fix.h_std_m is None else fix.h_std_m * 1000, 0, 2**32 - 1, 0),
         clamp_int(None if fix.alt_std_m is None else fix.alt_std_m * 1000, 0, 2**32 - 1, 0),
-        0, 0, 0)]
+        0, 0, _gps_yaw_cdeg(core, fix.heading_deg))]
     # PDOP and TDOP have no field in GPS_RAW_INT; every GCS can plot named values
     for name, value in (("GPS_PDOP", fix.pdop), ("GPS_TDOP", fix.tdop)):
         if value is not None and math.isfinite(value):

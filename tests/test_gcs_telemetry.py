@@ -11,6 +11,7 @@ import pytest
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry
 from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
+from companion.estimation.thread import EstimatorThread
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge import status, streams, telemetry
 from gcs_bridge.core import BRIDGE_PARAMS, UINT16_MAX, BridgeCore
@@ -96,6 +97,19 @@ def test_gps_unknowns_use_the_unknown_markers() -> None:
     assert g.cog == 0  # 359.996 deg rounds to 36000 cdeg, which is 0
     assert (g.h_acc, g.v_acc) == (1250, 3000)
     assert (pdop.name, pdop.value, tdop.name) == ("GPS_PDOP", pytest.approx(1.5), "GPS_TDOP")
+    assert g.yaw == 0  # a single-antenna receiver has no yaw
+
+
+def test_gps_yaw_carries_a_dual_antenna_heading_on_the_airframe() -> None:
+    core = make_core()
+    fix = GpsFix(0, 1.0, 43.7, 10.4, 40.0, 1, 11, course_deg=10.0, heading_deg=359.996)
+    g, *_ = packs(telemetry.gps_raw_int(core, fix))
+    assert g.yaw == 36000 and g.cog == 1000  # north is 36000: 0 means "no yaw"
+    # with the estimator's parameters: antennas across the wings, the airframe is 90 deg less
+    core.ctx.params.declare_all(EstimatorThread.declare_params("EST"))
+    core.ctx.params.set("EST_HDG_OFS", math.pi / 2)
+    g, *_ = packs(telemetry.gps_raw_int(core, fix))
+    assert g.yaw == 27000
 
 
 def test_imu_messages() -> None:
