@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import select
 import threading
@@ -373,3 +374,23 @@ def test_gps_copies_are_dropped_and_a_utc_jump_is_told_but_midnight_is_not() -> 
     assert epoch(86400.2 + 3600.0 + 10.0, 10.3) == 1  # silent 5 s, then on time again
     assert epoch(100.0, 10.4) == 1  # a reset: the receiver's clock goes back
     assert gps.utc_jumps == 2 and gps.counters()["late_epochs"] == 1
+
+
+def test_gps_heading_reaches_the_flight_only_from_a_receiver_declared_to_send_it() -> None:
+    """With GPS_HDT at 0 an HDT sent after the timed sentences joins the next epoch, 0.1 s
+    stale: the driver passes no heading on; with GPS_HDT at 1 it does."""
+    from companion.drivers.gps import GpsDriver
+    from companion.drivers.gps_protocol import GpsSolution
+
+    gps = GpsDriver("loop://")
+    sol = GpsSolution(utc=100.0, lat_deg=47.0, lon_deg=8.0, alt_m=500.0, fix=1, heading_deg=12.5)
+    assert gps.publish(sol, 1_000_000_000) == 1
+    fix = gps.ctx.state.gps.read()
+    assert fix is not None and fix.heading_deg is None
+    gps.ctx.params.declare_all(GpsDriver.declare_params("GPS"))
+    gps.ctx.params.set("GPS_HDT", 1)
+    gps.configure()
+    assert "HDT" in gps.decoder.expected
+    assert gps.publish(dataclasses.replace(sol, utc=100.1), 1_100_000_000) == 1
+    fix = gps.ctx.state.gps.read()
+    assert fix is not None and fix.heading_deg == 12.5

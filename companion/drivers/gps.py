@@ -34,7 +34,7 @@ FIX_LAYOUT = RecordLayout.of(GpsFix)
 """Format 1 of gps.bin: the GpsFix record's logged fields."""
 
 
-def solution_to_fix(sol: GpsSolution, t_ns: int) -> GpsFix:
+def solution_to_fix(sol: GpsSolution, t_ns: int, *, heading: bool = True) -> GpsFix:
     """The receiver's epoch as the flight uses it: the wire-level details (date, ellipsoid
     height, sentence list) stay in the decoder's GpsSolution; the horizontal error is one
     figure."""
@@ -45,7 +45,7 @@ def solution_to_fix(sol: GpsSolution, t_ns: int) -> GpsFix:
         ve_m_s=sol.ve_m_s, vd_m_s=sol.vd_m_s, alt_std_m=sol.alt_std_m,
         h_std_m=(math.hypot(sol.lat_std_m, sol.lon_std_m)
                  if sol.lat_std_m is not None and sol.lon_std_m is not None else None),
-        latency_s=sol.latency_s, heading_deg=sol.heading_deg)
+        latency_s=sol.latency_s, heading_deg=sol.heading_deg if heading else None)
 
 
 class GpsDriver(SerialDevice):
@@ -135,7 +135,9 @@ class GpsDriver(SerialDevice):
                 return 0
             self._last_utc_s = item.utc
             self._check_utc(item.utc, t_ns)
-        fix = solution_to_fix(item, t_ns)
+        # a heading only when the receiver is declared to send one per epoch (GPS_HDT):
+        # otherwise an HDT sent after the timed sentences joins the next epoch, 0.1 s stale
+        fix = solution_to_fix(item, t_ns, heading="HDT" in self.decoder.expected)
         self.ctx.state.gps.write(fix)
         if self.tlog is not None:
             self.tlog.log(FMT_SOLUTION, *FIX_LAYOUT.values(fix), t_ns=t_ns)
