@@ -834,15 +834,7 @@ class Eskf:
         # Euler-angle errors from the NED rotation-vector error (first two rows of M^-1)
         h[0, 6:9] = (cy / cp, sy / cp, 0.0)
         h[1, 6:9] = (-sy, cy, 0.0)
-        if latency > 0.0:
-            # the attitude error then differs from now's by the gyro-bias drift in between
-            h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency
-        if self.trim_bias_tilt:
-            # the reported attitude turns with the accelerometer bias: (-b_y, b_x, 0) / g in
-            # body axes, so the fix also speaks of the bias
-            g = self.gravity_m_s2
-            h[:, IDX_ACCEL_BIAS] = h[:, 6:9] @ rotmat_f(*past[2]) @ np.array(
-                ((0.0, -1.0 / g, 0.0), (1.0 / g, 0.0, 0.0), (0.0, 0.0, 0.0)))
+        self._airframe_fix_columns(h, past[2], latency)
         var = (self.horizon_std_rad / qual) ** 2
         result = self._kalman_update(y, h, np.eye(2) * var, self.attitude_gate)
         self._last_att_innovation = y
@@ -899,13 +891,22 @@ class Eskf:
         h = np.zeros((1, N_STATES))
         # the Euler yaw's error from the NED rotation-vector error (third row of M^-1)
         h[0, 6:9] = (t * math.cos(est_yaw), t * math.sin(est_yaw), 1.0)
-        if latency > 0.0:
-            h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency
-        if self.trim_bias_tilt:
-            g = self.gravity_m_s2
-            h[:, IDX_ACCEL_BIAS] = h[:, 6:9] @ rotmat_f(*past[2]) @ np.array(
-                ((0.0, -1.0 / g, 0.0), (1.0 / g, 0.0, 0.0), (0.0, 0.0, 0.0)))
+        self._airframe_fix_columns(h, past[2], latency)
         return self._kalman_update(y, h, np.eye(1) * (std * std), self.heading_gate)
+
+    def _airframe_fix_columns(self, h: FloatArray, q_then: tuple[float, ...],
+                              latency_s: float) -> None:
+        """The columns an airframe attitude fix (horizon, heading) shares, from its Euler rows
+        on the attitude error (``h[:, 6:9]``) and the filter's attitude then (``q_then``)."""
+        if latency_s > 0.0:
+            # the attitude error then differs from now's by the gyro-bias drift in between
+            h[:, 9:12] = h[:, 6:9] @ rotmat_f(*self._q) * latency_s
+        if self.trim_bias_tilt:
+            # the reported attitude turns with the accelerometer bias: (-b_y, b_x, 0) / g in
+            # body axes, so the fix also speaks of the bias
+            g = self.gravity_m_s2
+            h[:, IDX_ACCEL_BIAS] = h[:, 6:9] @ rotmat_f(*q_then) @ np.array(
+                ((0.0, -1.0 / g, 0.0), (1.0 / g, 0.0, 0.0), (0.0, 0.0, 0.0)))
 
     def _kalman_update(
         self, y: FloatArray, h: FloatArray, r: FloatArray, gate: float
