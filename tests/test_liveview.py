@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import select
 import socket
+import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -243,14 +246,38 @@ def test_log_tail_follows_a_growing_file(live: LiveRun, tmp_path: Path) -> None:
     assert np.array_equal(times, expected["time_s"])
 
 
-@pytest.mark.allow_leaks  # rerun's servers live until the process exits
+_SERVE_SCRIPT = """
+import sys
+from companion.liveview import open_recording
+rec = open_recording(serve=True, grpc_port=int(sys.argv[1]), web_port=int(sys.argv[2]),
+                     serve_host="127.0.0.1")
+print(rec.url, flush=True)
+sys.stdin.read()
+rec.close()
+"""
+
+
 def test_serve_accepts_viewers() -> None:
+    # in a process of its own: rerun's servers live until their process exits, and in this one
+    # their threads would open descriptors while later tests check for leaks
     grpc_port, web_port = free_tcp_port(), free_tcp_port()
-    rec = open_recording(serve=True, grpc_port=grpc_port, web_port=web_port, serve_host="127.0.0.1")
+    proc = subprocess.Popen([sys.executable, "-c", _SERVE_SCRIPT, str(grpc_port), str(web_port)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
-        assert rec.url is not None and str(grpc_port) in rec.url
+        assert proc.stdout is not None and proc.stdin is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 60.0)
+        assert ready, "the serving process printed no URL within 60 s"
+        url = proc.stdout.readline().strip()
+        assert str(grpc_port) in url and url.startswith("rerun+http://127.0.0.1:"), url
         for port in (grpc_port, web_port):
             with socket.create_connection(("127.0.0.1", port), timeout=5.0):
                 pass
+        proc.stdin.close()
+        assert proc.wait(timeout=30.0) == 0
     finally:
-        rec.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10.0)
+        for stream in (proc.stdin, proc.stdout):
+            if stream is not None:
+                stream.close()
