@@ -818,13 +818,10 @@ class Eskf:
         ):
             self.rejected_inputs += 1
             return UpdateResult(False, "bad_input")
-        self._propagate_covariance()
-        past = self._state_at(self._t - latency)
-        if past is None:
+        then = self._airframe_then(latency)
+        if then is None:
             return UpdateResult(False, "latency_out_of_range")
-        # the horizon sees the airframe: compare it with the attitude as reported
-        q_then = self._reported_q(past[2]) if self.trim_bias_tilt else past[2]
-        est_roll, est_pitch, est_yaw = quat_to_euler_f(*q_then)
+        q_then, (est_roll, est_pitch, est_yaw) = then
         if abs(est_pitch) > math.radians(75.0) or abs(pitch) > math.radians(75.0):
             return UpdateResult(False, "attitude_out_of_range")
         y = np.array((float(wrap_pi(roll - est_roll)), pitch - est_pitch))
@@ -834,7 +831,7 @@ class Eskf:
         # Euler-angle errors from the NED rotation-vector error (first two rows of M^-1)
         h[0, 6:9] = (cy / cp, sy / cp, 0.0)
         h[1, 6:9] = (-sy, cy, 0.0)
-        self._airframe_fix_columns(h, past[2], latency)
+        self._airframe_fix_columns(h, q_then, latency)
         var = (self.horizon_std_rad / qual) ** 2
         result = self._kalman_update(y, h, np.eye(2) * var, self.attitude_gate)
         self._last_att_innovation = y
@@ -878,12 +875,10 @@ class Eskf:
             return UpdateResult(False, "bad_input")
         if not self._yaw_aligned:
             return UpdateResult(False, "not_aligned")
-        self._propagate_covariance()
-        past = self._state_at(self._t - latency)
-        if past is None:
+        then = self._airframe_then(latency)
+        if then is None:
             return UpdateResult(False, "latency_out_of_range")
-        q_then = self._reported_q(past[2]) if self.trim_bias_tilt else past[2]
-        _roll, est_pitch, est_yaw = quat_to_euler_f(*q_then)
+        q_then, (_roll, est_pitch, est_yaw) = then
         if abs(est_pitch) > math.radians(75.0):
             return UpdateResult(False, "attitude_out_of_range")
         y = np.array((float(wrap_pi(yaw - est_yaw)),))
@@ -891,8 +886,22 @@ class Eskf:
         h = np.zeros((1, N_STATES))
         # the Euler yaw's error from the NED rotation-vector error (third row of M^-1)
         h[0, 6:9] = (t * math.cos(est_yaw), t * math.sin(est_yaw), 1.0)
-        self._airframe_fix_columns(h, past[2], latency)
+        self._airframe_fix_columns(h, q_then, latency)
         return self._kalman_update(y, h, np.eye(1) * (std * std), self.heading_gate)
+
+    def _airframe_then(
+        self, latency_s: float
+    ) -> tuple[tuple[float, ...], tuple[float, float, float]] | None:
+        """For an airframe attitude fix (horizon, heading) ``latency_s`` old: the covariance
+        brought up to now, the filter's attitude then, and the Euler angles of that attitude as
+        reported (the fix sees the airframe, trims and bias tilt included); None when the fix
+        is older than the history."""
+        self._propagate_covariance()
+        past = self._state_at_f(self._t - latency_s)
+        if past is None:
+            return None
+        q = past[2]
+        return q, quat_to_euler_f(*(self._reported_q(q) if self.trim_bias_tilt else q))
 
     def _airframe_fix_columns(self, h: FloatArray, q_then: tuple[float, ...],
                               latency_s: float) -> None:
@@ -1170,16 +1179,9 @@ class Eskf:
     def _remember_good(self) -> None:
         self._last_good = (self._q, self._pos, self._vel)
 
-    def _state_at(self, t_s: float) -> tuple[FloatArray, FloatArray, tuple[float, ...]] | None:
-        """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated)."""
-        found = self._state_at_f(t_s)
-        if found is None:
-            return None
-        return np.array(found[0]), np.array(found[1]), found[2]
-
     def _state_at_f(self, t_s: float) -> tuple[Vec3f, Vec3f, tuple[float, ...]] | None:
-        """:meth:`_state_at` as floats (the GPS update's path); the interpolation is the
-        array form's, element by element."""
+        """Nominal position, velocity and attitude at ``t_s`` from the history (interpolated;
+        the attitude is the nearer stored one), as floats; None before the history."""
         if t_s >= self._t - 1e-9 or not self._history:
             return self._pos_f, self._vel_f, self._q
         newer = None
