@@ -1,6 +1,6 @@
 """What limits the GPS/INS estimator's inclination accuracy in SITL: an error budget.
 
-    .venv/bin/python bench/estimation_budget_bench.py             # 5 seeds x 20 worlds (~2 min)
+    .venv/bin/python bench/estimation_budget_bench.py             # 5 seeds x 21 worlds (~2-4 min)
     .venv/bin/python bench/estimation_budget_bench.py --seeds 2   # a quick look
 
 The accuracy bench (``estimation_sitl_bench.py``) says how far the estimator is from its
@@ -81,6 +81,9 @@ WORLDS: dict[str, tuple[str, dict[str, Any], dict[str, Any], dict[str, float]]] 
     "no accel matrix": ("accelerometer scale factors and cross-axis terms removed", {},
                         dict(accel_scale_sigma=OFF, accel_cross_axis_sigma=OFF,
                              accel_scale_temp_per_c=OFF), {}),
+    "no gyro warm-up": ("the gyro biases' temperature drift removed (what a perfect model of "
+                        "the warm-up could buy)", {},
+                        dict(gyro_bias_temp_rad_s_per_c=OFF), {}),
     "no misalignment": ("mounting misalignment (0.5 deg before the level calibration) removed",
                         {}, dict(misalignment_sigma_rad=OFF), {}),
     "level exactly": ("the aircraft stood exactly level for the level calibration (0.1 deg)",
