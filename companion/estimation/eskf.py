@@ -90,7 +90,7 @@ from companion.estimation.quat import (
 log = logging.getLogger(__name__)
 
 Vec3f = tuple[float, float, float]
-N_STATES = 25
+N_STATES = 28
 IDX_POS = slice(0, 3)
 IDX_VEL = slice(3, 6)
 IDX_ATT = slice(6, 9)
@@ -103,6 +103,9 @@ IDX_GPS_LAG = 15
 IDX_GYRO_MATRIX = slice(16, 25)
 """The gyro's scale-factor and cross-axis error ``M`` (row-major, dimensionless): the part reads
 ``(I + M) w + b`` for a body rate ``w``."""
+IDX_GYRO_TEMP = slice(25, 28)
+"""The gyro bias's temperature coefficient per axis, rad/s per degree C: while the IMU warms up,
+each counted temperature change moves the bias by this times the change."""
 _F_INDEX = np.array(
     [r * N_STATES + c for r, c in ((0, 3), (1, 4), (2, 5))]
     + [r * N_STATES + c for r in range(3, 6) for c in range(6, 9)]
@@ -122,6 +125,13 @@ TEMP_STEP_C = 0.2
 TEMP_SPAN_C = 20.0
 """Temperature span of a typical warm-up after switch-on (20 -> 40 C in an enclosure), over
 which the temperature-driven bias walk spreads as much as the coefficient says."""
+GYRO_TEMP_RESIDUAL = 0.2
+"""The part of a gyro's temperature drift a straight line in temperature leaves (curvature,
+hysteresis), as a fraction of the coefficient's 1-sigma: it stays a random walk in temperature
+beside the estimated coefficient. Chosen on the tuning flights (0.1-0.3 score alike)."""
+MAX_GYRO_TEMP_RAD_S_PER_C = 0.01
+"""The estimated temperature coefficient is clipped to +-this (0.57 deg/s per C, far beyond any
+MEMS part's)."""
 
 
 @dataclass(frozen=True)
@@ -197,6 +207,9 @@ class EskfState:
     gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
     """Estimated gyro scale-factor and cross-axis error ``M`` (the part reads
     ``(I + M) w + b``); zeros when it is not estimated."""
+    gyro_temp_rad_s_per_c: FloatArray = field(default_factory=lambda: np.zeros(3))
+    """Estimated temperature coefficient of the gyro bias per axis; zeros when the filter
+    has no coefficient (``gyro_bias_temp_rad_s_per_c`` 0)."""
 
 
 class Eskf:
@@ -239,7 +252,9 @@ class Eskf:
         gyro_bias_temp_rad_s_per_c, accel_bias_temp_m_s2_per_c: 1-sigma of the sensor's bias
             change per degree C (its temperature coefficient, unknown per part); with
             ``set_temperature`` the biases may then move that much faster while the part's
-            temperature changes (0: no temperature term).
+            temperature changes (0: no temperature term). The gyro's coefficient is also
+            estimated (``IDX_GYRO_TEMP``, this its prior), so a warm-up's drift, once seen, is
+            predicted instead of only allowed for.
         cov_period_s: the covariance is propagated once per this much IMU time (samples in
             between only accumulate); the nominal state follows every sample.
         history_s: how far back state history is kept to place late measurements.
@@ -335,6 +350,7 @@ class Eskf:
         self.max_gyro_matrix = float(max_gyro_matrix)
         self._gm_on = self.gyro_matrix_std > 0.0
         self._temp_ref_c = math.nan  # temperature at the last counted change
+        self._gyro_temp = (0.0, 0.0, 0.0)  # estimated coefficient, rad/s/C (IDX_GYRO_TEMP)
         self._pend_temp_c = 0.0  # counted change not yet given to the covariance
         self.cov_period_s = float(cov_period_s)
         self._lag_on = self.gps_lag_std_s > 0.0
@@ -411,6 +427,8 @@ class Eskf:
         var[IDX_ACCEL_BIAS] = self.init_accel_bias_std_m_s2**2
         var[IDX_GPS_LAG] = self.gps_lag_std_s**2 if self._lag_on else FIXED_LAG_VAR
         var[IDX_GYRO_MATRIX] = self.gyro_matrix_std**2 if self._gm_on else FIXED_LAG_VAR
+        var[IDX_GYRO_TEMP] = (self.gyro_bias_temp_rad_s_per_c**2
+                              if self.gyro_bias_temp_rad_s_per_c > 0.0 else FIXED_LAG_VAR)
         return np.diag(var)
 
     def initialise(
@@ -482,7 +500,10 @@ class Eskf:
         change of ``TEMP_STEP_C`` or more (quantisation and sensor noise stay below it) adds
         ``(coefficient^2) * TEMP_SPAN_C * |change|`` to the bias variances: a random walk in
         temperature rather than in time, whose spread over a warm-up of ``TEMP_SPAN_C``
-        equals the coefficient's. A part at a steady temperature adds nothing.
+        equals the coefficient's (for the gyro, ``GYRO_TEMP_RESIDUAL`` of it: what a straight
+        line leaves). The gyro's bias also moves by its estimated coefficient times the
+        change, and the change couples the bias error to the coefficient's, so the drift seen
+        early in a warm-up is predicted later. A part at a steady temperature adds nothing.
         """
         try:
             t = float(temperature_c)
@@ -495,10 +516,25 @@ class Eskf:
         if not math.isfinite(self._temp_ref_c):
             self._temp_ref_c = t
             return
-        step = abs(t - self._temp_ref_c)
-        if step >= TEMP_STEP_C:
-            self._pend_temp_c += step
+        change = t - self._temp_ref_c
+        if abs(change) >= TEMP_STEP_C:
+            self._pend_temp_c += abs(change)
             self._temp_ref_c = t
+            if self._initialised and self.gyro_bias_temp_rad_s_per_c > 0.0:
+                self._follow_temperature(change)
+
+    def _follow_temperature(self, change_c: float) -> None:
+        """Move the gyro bias by the estimated coefficient over a temperature change, and its
+        error by the coefficient's error: b' = b + k dT, so d(b') = d(b) + dT d(k)."""
+        self._propagate_covariance()  # the samples so far saw the bias as it was
+        lim = self.max_gyro_bias_rad_s
+        self._set_biases(np.array([clamp(self._bg_f[i] + k * change_c, -lim, lim)
+                                   for i, k in enumerate(self._gyro_temp)]), self._ba)
+        p = self._p
+        b, k = IDX_GYRO_BIAS, IDX_GYRO_TEMP
+        # P' = T P T' with T = I + dT (rows of b, columns of k), written out on the blocks
+        p[b, :] += change_c * p[k, :]
+        p[:, b] += change_c * p[:, k]
 
     # -- prediction ----------------------------------------------------------------------------
 
@@ -665,7 +701,7 @@ class Eskf:
         p += self._process_noise(dt)
         if self._pend_temp_c > 0.0:
             scale = TEMP_SPAN_C * self._pend_temp_c
-            gyro_var = self.gyro_bias_temp_rad_s_per_c**2 * scale
+            gyro_var = (GYRO_TEMP_RESIDUAL * self.gyro_bias_temp_rad_s_per_c)**2 * scale
             accel_var = self.accel_bias_temp_m_s2_per_c**2 * scale
             for i in range(9, 12):
                 p[i, i] += gyro_var
@@ -973,6 +1009,12 @@ class Eskf:
         )
         if self._lag_on:
             self._lag = clamp(self._lag + d[IDX_GPS_LAG], 0.0, self.max_gps_lag_s)
+        if self.gyro_bias_temp_rad_s_per_c > 0.0:
+            lim_t = MAX_GYRO_TEMP_RAD_S_PER_C
+            k = self._gyro_temp
+            self._gyro_temp = (clamp(k[0] + d[25], -lim_t, lim_t),
+                               clamp(k[1] + d[26], -lim_t, lim_t),
+                               clamp(k[2] + d[27], -lim_t, lim_t))
         if self._gm_on:
             lim = self.max_gyro_matrix
             m = self._gm.reshape(-1).tolist()
@@ -1102,6 +1144,8 @@ class Eskf:
                          self._ba if np.isfinite(self._ba).all() else np.zeros(3))
         if not np.isfinite(self._gm).all():
             self._set_gyro_matrix(np.zeros((3, 3)))
+        if not all(math.isfinite(c) for c in self._gyro_temp):
+            self._gyro_temp = (0.0, 0.0, 0.0)
         self._pend_dth_f = (0.0, 0.0, 0.0)
         self._q = (q[0], q[1], q[2], q[3])
         self._pos, self._vel = pos, vel
@@ -1263,6 +1307,19 @@ class Eskf:
         self._inflate(IDX_GYRO_MATRIX, value * value if self._gm_on else FIXED_LAG_VAR)
         return True
 
+    def set_gyro_bias_temp(self, value: float) -> bool:
+        """Change the gyro's temperature coefficient prior in flight (a parameter set): the
+        coefficient restarts from zero with that 1-sigma (0: no coefficient, and the
+        temperature no longer widens the gyro bias). Returns False for a value that is not finite and >= 0."""
+        if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0.0):
+            self.rejected_inputs += 1
+            return False
+        self._propagate_covariance()
+        self.gyro_bias_temp_rad_s_per_c = float(value)
+        self._gyro_temp = (0.0, 0.0, 0.0)
+        self._inflate(IDX_GYRO_TEMP, value * value if value > 0.0 else FIXED_LAG_VAR)
+        return True
+
     @property
     def gps_lag_estimate_s(self) -> float:
         """The receiver delay the filter currently applies on top of the measured latency."""
@@ -1310,6 +1367,7 @@ class Eskf:
             gps_lag_s=self._lag,
             gps_lag_std_s=self.gps_lag_estimate_std_s,
             gyro_matrix=self._gm.copy(),
+            gyro_temp_rad_s_per_c=np.array(self._gyro_temp),
         )
 
     def flight_view(self) -> FlightView:

@@ -182,7 +182,8 @@ class EstimatorCore:
             f.gyro_bias_rw_rad_s_rt_s = self.p["GB_RW"]
             f.accel_bias_rw_m_s2_rt_s = self.p["AB_RW"]
             f.horizon_std_rad = self.p["HZN_STD"]
-            f.gyro_bias_temp_rad_s_per_c = self.p.get("GB_TEMP", 0.0)
+            if f.gyro_bias_temp_rad_s_per_c != self.p.get("GB_TEMP", 0.0):
+                f.set_gyro_bias_temp(self.p.get("GB_TEMP", 0.0))
             f.accel_bias_temp_m_s2_per_c = self.p.get("AB_TEMP", 0.0)
             if f.gyro_matrix_std != self.p.get("GS_STD", 0.0):
                 f.set_gyro_matrix_std(self.p.get("GS_STD", 0.0))

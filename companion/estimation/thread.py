@@ -105,10 +105,12 @@ class EstimatorThread(ManagedThread):
                         "tolerance is about 0.01 at 1 sigma, and the prior is kept wider "
                         "than that): the filter estimates the 3x3 error in turns. 0 takes "
                         "the gyro's scale as exact."),
-            float_param(f"{p}_GB_TEMP", 5e-4, 0.0, 0.01, "rad/s/degC",
-                        "Gyro bias change per degree of IMU temperature, 1-sigma (a typical "
-                        "consumer MEMS part: 0.03 deg/s/C): while the part warms up the bias "
-                        "may move this much faster. 0 ignores the temperature."),
+            float_param(f"{p}_GB_TEMP", 1.5e-3, 0.0, 0.01, "rad/s/degC",
+                        "Gyro bias change per degree of IMU temperature, 1-sigma: the prior "
+                        "of the coefficient the filter estimates per axis while the part "
+                        "warms up (a consumer MEMS part's datasheet allows about 0.05 deg/s/C "
+                        "at 1 sigma; the prior is kept wider, 0.086 deg/s/C). 0 ignores the "
+                        "temperature."),
             float_param(f"{p}_AB_TEMP", 1.5e-3, 0.0, 0.1, "m/s^2/degC",
                         "Accelerometer bias change per degree of IMU temperature, 1-sigma "
                         "(0.15 mg/C). 0 ignores the temperature."),
