@@ -186,6 +186,23 @@ def test_a_dual_antenna_receiver_reaches_the_estimator(tmp_path: Path) -> None:
     assert np.isfinite(heading).all() and ((heading >= 0.0) & (heading < 360.0)).all()
 
 
+def test_a_warming_imu_has_its_temperature_coefficient_learnt_and_logged(tmp_path: Path) -> None:
+    """The consumer part warms up (20 -> 40 C): its temperature travels from the simulated
+    IMU's slow block through the driver to the estimator, whose coefficient moves off its
+    prior's zero and is logged with every fix; a part that does not warm moves nothing."""
+    summary, fdir = fly(tmp_path / "warm", 40.0, scenario="turns", seed=3,
+                        imu_profile="consumer")
+    est = {t["name"]: t for t in summary["threads"]}["estimator"]["counters"]
+    assert est["temperature_readings"] >= 30
+    fixes = read_log(fdir / "estimator.bin").data(2)
+    coeff = np.stack([fixes[f"gyro_temp_{a}"] for a in "xyz"], axis=1)
+    assert np.isfinite(coeff).all() and len(coeff) > 100
+    assert np.abs(coeff[-1]).max() > 1e-5  # learnt from the warm-up (prior: 1.5e-3 1-sigma)
+    assert np.abs(coeff).max() < 0.01
+    _, still = fly(tmp_path / "simple", 20.0, scenario="turns", seed=3)  # no temperature drift
+    assert not read_log(still / "estimator.bin").data(2)["gyro_temp_x"].any()
+
+
 def test_cli_lockstep_flight_and_what_it_refuses(tmp_path: Path) -> None:
     base = [sys.executable, "-m", "companion", "sim", "--lockstep",
             "--log-dir", str(tmp_path / "flights"), "--params-file", str(tmp_path / "p.parm")]

@@ -1216,6 +1216,12 @@ class Eskf:
         not estimated): the gyro reads ``(I + M) w + b``."""
         return self._gm.copy()
 
+    @property
+    def gyro_temp_estimate_rad_s_per_c(self) -> tuple[float, float, float]:
+        """The gyro bias's estimated temperature coefficient per axis (rad/s per degree C),
+        without :meth:`state`'s copies (the flight thread logs it at every fix)."""
+        return self._gyro_temp
+
     def gyro_matrix_diagonal(self) -> list[float]:
         """The scale-factor errors alone (the diagonal of :attr:`gyro_matrix_estimate`)."""
         return self._gm.diagonal().tolist()  # type: ignore[no-any-return]

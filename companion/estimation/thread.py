@@ -64,10 +64,11 @@ STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_
                  "std_yaw_rad", "faults", "aligned"]
 GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_s", "nis",
                "accepted", "latency_s", "gps_lag_s", "gps_lag_std_s", "gyro_scale_x",
-               "gyro_scale_y", "gyro_scale_z"]
+               "gyro_scale_y", "gyro_scale_z", "gyro_temp_x", "gyro_temp_y", "gyro_temp_z"]
 """Per fused fix: innovations, NIS, verdict, the whole latency applied, and the receiver delay
-the filter estimates within it (with its 1-sigma), and the gyro scale-factor errors it
-estimates (the diagonal of ``EST_GS_STD``'s matrix; fractions, 0 when not estimated)."""
+the filter estimates within it (with its 1-sigma), the gyro scale-factor errors it estimates
+(the diagonal of ``EST_GS_STD``'s matrix; fractions, 0 when not estimated) and the gyro
+bias's temperature coefficient it estimates (rad/s per degree C, 0 without ``EST_GB_TEMP``)."""
 
 
 class EstimatorThread(ManagedThread):
@@ -161,8 +162,8 @@ class EstimatorThread(ManagedThread):
     def define_logs(self, tlog: Any) -> None:
         tlog.define(FMT_STATE, ",".join(["%.6f"] * 3 + ["%.3f"] * 6 + ["%.6f"] * 6
                                         + ["%.4f"] * 9) + ",%u,%hhu", STATE_COLUMNS)
-        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f,%.5f,%.5f,%.5f",
-                    GPS_COLUMNS)
+        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f,%.5f,%.5f,%.5f"
+                    + ",%.7f,%.7f,%.7f", GPS_COLUMNS)
 
     def _params(self) -> dict[str, float]:
         prefix = self.param_prefix + "_"
@@ -301,7 +302,8 @@ class EstimatorThread(ManagedThread):
                     self.tlog.log(FMT_GPS, *res.innovation.tolist(),
                                   res.nis if math.isfinite(res.nis) else -1.0,
                                   int(res.accepted), latency, f.gps_lag_estimate_s,
-                                  f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal())
+                                  f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal(),
+                                  *f.gyro_temp_estimate_rad_s_per_c)
         slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
         if slow is not None and slow_version != self._temp_seen:
             self._temp_seen = slow_version
