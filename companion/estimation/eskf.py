@@ -1010,11 +1010,11 @@ class Eskf:
         if self._lag_on:
             self._lag = clamp(self._lag + d[IDX_GPS_LAG], 0.0, self.max_gps_lag_s)
         if self.gyro_bias_temp_rad_s_per_c > 0.0:
-            lim_t = MAX_GYRO_TEMP_RAD_S_PER_C
+            lim_t, k0 = MAX_GYRO_TEMP_RAD_S_PER_C, IDX_GYRO_TEMP.start
             k = self._gyro_temp
-            self._gyro_temp = (clamp(k[0] + d[25], -lim_t, lim_t),
-                               clamp(k[1] + d[26], -lim_t, lim_t),
-                               clamp(k[2] + d[27], -lim_t, lim_t))
+            self._gyro_temp = (clamp(k[0] + d[k0], -lim_t, lim_t),
+                               clamp(k[1] + d[k0 + 1], -lim_t, lim_t),
+                               clamp(k[2] + d[k0 + 2], -lim_t, lim_t))
         if self._gm_on:
             lim = self.max_gyro_matrix
             m = self._gm.reshape(-1).tolist()
@@ -1316,7 +1316,8 @@ class Eskf:
     def set_gyro_bias_temp(self, value: float) -> bool:
         """Change the gyro's temperature coefficient prior in flight (a parameter set): the
         coefficient restarts from zero with that 1-sigma (0: no coefficient, and the
-        temperature no longer widens the gyro bias). Returns False for a value that is not finite and >= 0."""
+        temperature no longer widens the gyro bias). False for a value that is not finite
+        and >= 0."""
         if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0.0):
             self.rejected_inputs += 1
             return False
