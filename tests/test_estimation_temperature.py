@@ -125,10 +125,10 @@ def test_a_parameter_change_restarts_the_coefficient() -> None:
     assert f.set_gyro_bias_temp(2 * GYRO_TC)
     var = np.diagonal(f.covariance)[IDX_GYRO_TEMP]
     np.testing.assert_allclose(var, (2 * GYRO_TC) ** 2)
-    assert f.covariance[IDX_GYRO_TEMP, IDX_GYRO_BIAS].any() == False  # noqa: E712
+    assert not f.covariance[IDX_GYRO_TEMP, IDX_GYRO_BIAS].any()  # uncoupled from the bias
     assert f.set_gyro_bias_temp(0.0)
     before = f.covariance[IDX_GYRO_BIAS, IDX_GYRO_BIAS].copy()
-    f.set_temperature(25.0)  # no coefficient: the temperature no longer moves the gyro's
+    f.set_temperature(25.0)  # no coefficient: the temperature no longer widens the gyro bias
     f.predict((0.0, 0.0, 0.0), (0.0, 0.0, -9.80665), 0.01)
     after = f.covariance[IDX_GYRO_BIAS, IDX_GYRO_BIAS]
     assert np.allclose(after, before, rtol=1e-3, atol=1e-10)
