@@ -185,10 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
     drivers_sub = drivers.add_subparsers(dest="drivers_command", metavar="ACTION", required=True)
     _provider("companion.drivers.cli", "add_commands")(drivers_sub)
 
-    estimation = sub.add_parser("estimation", help="estimator tools (replay a PX4/ArduPilot log)")
+    estimation = sub.add_parser("estimation", help="estimator tools (replay a PX4/ArduPilot log, carry a gyro calibration to the next flight)")
     estimation_sub = estimation.add_subparsers(dest="estimation_command", metavar="ACTION",
                                                required=True)
     _provider("companion.estimation.replay.cli", "add_commands")(estimation_sub)
+    _provider("companion.estimation.calibration_cli", "add_commands")(estimation_sub)
 
     mon = sub.add_parser("monitor", help="the legacy ground monitor (terminal UI or --json)")
     _provider("legacy_protocol.cli", "add_monitor_arguments")(mon)

@@ -349,6 +349,11 @@ class Eskf:
         self.gyro_matrix_rw_rt_s = float(gyro_matrix_rw_rt_s)
         self.max_gyro_matrix = float(max_gyro_matrix)
         self._gm_on = self.gyro_matrix_std > 0.0
+        self._gm_prior = np.zeros((3, 3))
+        """The gyro matrix a previous flight learnt (`set_gyro_calibration`): the estimate
+        starts from it, and with ``gyro_matrix_std`` 0 it is applied as exact."""
+        self._gm_apply = self._gm_on
+        self._gt_prior = (0.0, 0.0, 0.0)
         self._temp_ref_c = math.nan  # temperature at the last counted change
         self._gyro_temp = (0.0, 0.0, 0.0)  # estimated coefficient, rad/s/C (IDX_GYRO_TEMP)
         self._pend_temp_c = 0.0  # counted change not yet given to the covariance
@@ -390,7 +395,8 @@ class Eskf:
         self._pos_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._vel_f: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._set_biases(np.zeros(3), np.zeros(3))
-        self._set_gyro_matrix(np.zeros((3, 3)))
+        self._set_gyro_matrix(self._gm_prior.copy())
+        self._gyro_temp = self._gt_prior
         self._p = np.eye(N_STATES)
         self._lag = self.gps_lag_s
         self._f_nav_f = (0.0, 0.0, -self.gravity_m_s2)
@@ -609,15 +615,16 @@ class Eskf:
         # cost more than the arithmetic.
         bg0, bg1, bg2 = self._bg_f
         ba0, ba1, ba2 = self._ba_f
-        if self._gm_on:
+        if self._gm_apply:
             # the part reads (I + M) w + b: undo the estimated M (its inverse, kept as c)
             u0, u1, u2 = g0 - bg0, g1 - bg1, g2 - bg2
             c = self._gm_inv_f
             u0, u1, u2 = (c[0] * u0 + c[1] * u1 + c[2] * u2, c[3] * u0 + c[4] * u1 + c[5] * u2,
                           c[6] * u0 + c[7] * u1 + c[8] * u2)
             wx, wy, wz = u0 * dt, u1 * dt, u2 * dt
-            th = self._pend_dth_f
-            self._pend_dth_f = (th[0] + wx, th[1] + wy, th[2] + wz)
+            if self._gm_on:
+                th = self._pend_dth_f
+                self._pend_dth_f = (th[0] + wx, th[1] + wy, th[2] + wz)
         else:
             wx, wy, wz = (g0 - bg0) * dt, (g1 - bg1) * dt, (g2 - bg2) * dt
         fb0, fb1, fb2 = a0 - ba0, a1 - ba1, a2 - ba2
@@ -1143,9 +1150,9 @@ class Eskf:
         self._set_biases(self._bg if np.isfinite(self._bg).all() else np.zeros(3),
                          self._ba if np.isfinite(self._ba).all() else np.zeros(3))
         if not np.isfinite(self._gm).all():
-            self._set_gyro_matrix(np.zeros((3, 3)))
+            self._set_gyro_matrix(self._gm_prior.copy())
         if not all(math.isfinite(c) for c in self._gyro_temp):
-            self._gyro_temp = (0.0, 0.0, 0.0)
+            self._gyro_temp = self._gt_prior
         self._pend_dth_f = (0.0, 0.0, 0.0)
         self._q = (q[0], q[1], q[2], q[3])
         self._pos, self._vel = pos, vel
@@ -1221,6 +1228,17 @@ class Eskf:
         """The gyro bias's estimated temperature coefficient per axis (rad/s per degree C),
         without :meth:`state`'s copies (the flight thread logs it at every fix)."""
         return self._gyro_temp
+
+    def gyro_calibration(self) -> tuple[list[float], list[float], list[float], list[float]]:
+        """What the filter has learnt of the part: ``M`` (9, row-major), its 1-sigma per
+        element, the temperature coefficient (3, rad/s/C) and its 1-sigma; a 1-sigma reads 0
+        for what is not estimated. The flight thread logs it, and the next flight can start
+        from it (`set_gyro_calibration`, companion.estimation.calibration)."""
+        d = np.sqrt(np.maximum(np.diagonal(self._p), 0.0))
+        m_std = d[IDX_GYRO_MATRIX].tolist() if self._gm_on else [0.0] * 9
+        t_std = (d[IDX_GYRO_TEMP].tolist() if self.gyro_bias_temp_rad_s_per_c > 0.0
+                 else [0.0] * 3)
+        return self._gm.reshape(-1).tolist(), m_std, list(self._gyro_temp), t_std
 
     def gyro_matrix_diagonal(self) -> list[float]:
         """The scale-factor errors alone (the diagonal of :attr:`gyro_matrix_estimate`)."""
@@ -1306,8 +1324,9 @@ class Eskf:
             return False
         self._propagate_covariance()
         self.gyro_matrix_std, self._gm_on = value, value > 0.0
+        self._gm_apply = self._gm_on or bool(self._gm_prior.any())
         self._q_cache.clear()
-        self._set_gyro_matrix(np.zeros((3, 3)))
+        self._set_gyro_matrix(self._gm_prior.copy())
         self._pend_dth_f = (0.0, 0.0, 0.0)
         self._f[IDX_ATT, IDX_GYRO_MATRIX] = 0.0
         self._inflate(IDX_GYRO_MATRIX, value * value if self._gm_on else FIXED_LAG_VAR)
@@ -1323,8 +1342,51 @@ class Eskf:
             return False
         self._propagate_covariance()
         self.gyro_bias_temp_rad_s_per_c = float(value)
-        self._gyro_temp = (0.0, 0.0, 0.0)
+        self._gyro_temp = self._gt_prior
         self._inflate(IDX_GYRO_TEMP, value * value if value > 0.0 else FIXED_LAG_VAR)
+        return True
+
+    def set_gyro_calibration(self, matrix: ArrayLike, temp_rad_s_per_c: ArrayLike) -> bool:
+        """Start the gyro's matrix error ``M`` and its bias's temperature coefficient from
+        what a previous flight of this part learnt, instead of from zero.
+
+        Both belong to the part and its mounting, not to one power-on, so what one flight
+        learnt holds for the next. Without it every flight spends its first turns both ways
+        relearning them, and a 20 s turn on a cross-axis error not yet seen is where the
+        largest tilt errors fall: a rotation about the specific force is not observable in a
+        steady turn, so the gyro's error about the body z axis goes straight into the tilt.
+        ``gyro_matrix_std`` and ``gyro_bias_temp_rad_s_per_c`` stay the 1-sigma around these
+        values; with ``gyro_matrix_std`` 0 the matrix is applied as exact. A running filter
+        restarts both estimates from the new values.
+
+        False (nothing changed) unless ``matrix`` is 3x3 (or 9 values, row-major) within
+        ``max_gyro_matrix`` and ``temp_rad_s_per_c`` 3 values within
+        ``MAX_GYRO_TEMP_RAD_S_PER_C``, all finite.
+        """
+        try:
+            m = np.asarray(matrix, dtype=float).reshape(3, 3)
+            k = np.asarray(temp_rad_s_per_c, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            self.rejected_inputs += 1
+            return False
+        if not (np.isfinite(m).all() and np.isfinite(k).all()
+                and float(np.abs(m).max()) <= self.max_gyro_matrix
+                and float(np.abs(k).max()) <= MAX_GYRO_TEMP_RAD_S_PER_C):
+            self.rejected_inputs += 1
+            return False
+        if self._initialised:
+            self._propagate_covariance()
+        self._gm_prior = m.copy()
+        self._gt_prior = (float(k[0]), float(k[1]), float(k[2]))
+        self._gm_apply = self._gm_on or bool(m.any())
+        self._set_gyro_matrix(m.copy())
+        self._gyro_temp = self._gt_prior
+        self._pend_dth_f = (0.0, 0.0, 0.0)
+        if self._initialised:
+            self._inflate(IDX_GYRO_MATRIX, self.gyro_matrix_std**2 if self._gm_on
+                          else FIXED_LAG_VAR)
+            self._inflate(IDX_GYRO_TEMP, self.gyro_bias_temp_rad_s_per_c**2
+                          if self.gyro_bias_temp_rad_s_per_c > 0.0 else FIXED_LAG_VAR)
         return True
 
     @property

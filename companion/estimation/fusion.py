@@ -20,6 +20,7 @@ import numpy as np
 
 from companion.core.geo import NedFrame
 from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
+from companion.estimation.calibration import GYRO_MATRIX_PARAMS, GYRO_TEMP_PARAMS
 from companion.estimation.eskf import Eskf, UpdateResult
 from companion.estimation.quat import quat_from_euler, quat_multiply_f
 
@@ -155,7 +156,23 @@ class EstimatorCore:
         kwargs.update(self.eskf_kwargs)
         f = Eskf(**kwargs)
         f.trim_bias_tilt = self._trim_bias_tilt()
+        self._apply_calibration(f)
         return f
+
+    def _calibration(self) -> tuple[list[float], list[float]]:
+        return ([self.p.get(name, 0.0) for name in GYRO_MATRIX_PARAMS],
+                [self.p.get(name, 0.0) for name in GYRO_TEMP_PARAMS])
+
+    def _apply_calibration(self, f: Eskf) -> None:
+        """Start the filter's gyro matrix and temperature coefficient from `GM_*`/`GT_*`
+        (what a previous flight learnt); out-of-range values are refused by the filter and
+        logged, and it starts from zero as before."""
+        matrix, temp = self._calibration()
+        if not any(matrix) and not any(temp):
+            return
+        if not f.set_gyro_calibration(matrix, temp):
+            log.warning("estimator: EST_GM_*/EST_GT_* refused (beyond the filter's limits); "
+                        "the gyro calibration starts from zero")
 
     def _trim_bias_tilt(self) -> bool:
         """Whether the reported attitude gives back the bias a level calibration took for a
@@ -167,6 +184,7 @@ class EstimatorCore:
         """New parameter values; noise densities apply from the next prediction, a new GPS
         delay or delay uncertainty restarts the delay estimate from it."""
         lag_before = (self.p.get("GPS_LAG"), self.p.get("GPS_LAGSD"))
+        cal_before = self._calibration()
         trim_before = self._trim_angles()
         self.p.update({k: float(v) for k, v in params.items()})
         self._set_trim()
@@ -187,6 +205,8 @@ class EstimatorCore:
             f.accel_bias_temp_m_s2_per_c = self.p.get("AB_TEMP", 0.0)
             if f.gyro_matrix_std != self.p.get("GS_STD", 0.0):
                 f.set_gyro_matrix_std(self.p.get("GS_STD", 0.0))
+            if self._calibration() != cal_before:
+                self._apply_calibration(f)
             f._q_cache.clear()
 
     def initial_phase(self, samples: Sequence[ImuSample], fix: GpsFix | None) -> bool:

@@ -57,6 +57,9 @@ class _LevelRequest:
 
 FMT_STATE = 1
 FMT_GPS = 2
+FMT_CAL = 3
+CAL_EVERY = 10
+"""GPS fusions between two calibration records (once a second with a 10 Hz receiver)."""
 STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_m",
                  "vn_m_s", "ve_m_s", "vd_m_s", "gbx_rad_s", "gby_rad_s", "gbz_rad_s",
                  "bax_m_s2", "bay_m_s2", "baz_m_s2", "std_n_m", "std_e_m", "std_d_m",
@@ -69,6 +72,12 @@ GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_
 the filter estimates within it (with its 1-sigma), the gyro scale-factor errors it estimates
 (the diagonal of ``EST_GS_STD``'s matrix; fractions, 0 when not estimated) and the gyro
 bias's temperature coefficient it estimates (rad/s per degree C, 0 without ``EST_GB_TEMP``)."""
+CAL_COLUMNS = ([f"gm_{r}{c}" for r in "xyz" for c in "xyz"]
+               + [f"gm_std_{r}{c}" for r in "xyz" for c in "xyz"]
+               + ["gt_x", "gt_y", "gt_z", "gt_std_x", "gt_std_y", "gt_std_z"])
+"""What the filter has learnt of the gyro (`Eskf.gyro_calibration`): its matrix error and
+temperature coefficient with their 1-sigma, so ``companion estimation calibration`` can hand
+them to the next flight (companion.estimation.calibration)."""
 
 
 class EstimatorThread(ManagedThread):
@@ -79,6 +88,7 @@ class EstimatorThread(ManagedThread):
         self._gps_seen = 0
         self._hzn_seen = 0
         self._temp_seen = 0
+        self._fused = 0
         self.faults_reported = 0
         self._level_lock = threading.Lock()
         self._level: _LevelRequest | None = None
@@ -112,6 +122,17 @@ class EstimatorThread(ManagedThread):
                         "warms up (a consumer MEMS part's datasheet allows about 0.05 deg/s/C "
                         "at 1 sigma; the prior is kept wider, 0.086 deg/s/C). 0 ignores the "
                         "temperature."),
+            *[float_param(f"{p}_GM_{r}{c}", 0.0, -0.1, 0.1, "",
+                          f"Gyro matrix error, row {r.lower()}, column {c.lower()} (the part "
+                          "reads (I + M) w + bias): where the filter's estimate starts, from "
+                          "what a previous flight of this part learnt (`companion estimation "
+                          "calibration`); EST_GS_STD is its 1-sigma. 0 with no such flight.")
+              for r in "XYZ" for c in "XYZ"],
+            *[float_param(f"{p}_GT_{a}", 0.0, -0.01, 0.01, "rad/s/degC",
+                          f"Gyro {a.lower()} bias temperature coefficient where the filter's "
+                          "estimate starts, from a previous flight of this part (`companion "
+                          "estimation calibration`); EST_GB_TEMP is its 1-sigma.")
+              for a in "XYZ"],
             float_param(f"{p}_AB_TEMP", 1.5e-3, 0.0, 0.1, "m/s^2/degC",
                         "Accelerometer bias change per degree of IMU temperature, 1-sigma "
                         "(0.15 mg/C). 0 ignores the temperature."),
@@ -164,6 +185,7 @@ class EstimatorThread(ManagedThread):
                                         + ["%.4f"] * 9) + ",%u,%hhu", STATE_COLUMNS)
         tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f,%.5f,%.5f,%.5f"
                     + ",%.7f,%.7f,%.7f", GPS_COLUMNS)
+        tlog.define(FMT_CAL, ",".join(["%.6f"] * 18 + ["%.8f"] * 6), CAL_COLUMNS)
 
     def _params(self) -> dict[str, float]:
         prefix = self.param_prefix + "_"
@@ -304,6 +326,10 @@ class EstimatorThread(ManagedThread):
                                   int(res.accepted), latency, f.gps_lag_estimate_s,
                                   f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal(),
                                   *f.gyro_temp_estimate_rad_s_per_c)
+                    self._fused += 1
+                    if self._fused % CAL_EVERY == 1:
+                        m, m_std, k, k_std = f.gyro_calibration()
+                        self.tlog.log(FMT_CAL, *m, *m_std, *k, *k_std)
         slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
         if slow is not None and slow_version != self._temp_seen:
             self._temp_seen = slow_version

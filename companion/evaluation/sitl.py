@@ -50,6 +50,7 @@ from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
 from companion.estimation.attitude import estimate_attitude
+from companion.estimation.calibration import GyroCalibration, calibration_from_row
 from companion.estimation.fusion import EstimatorCore, board_to_body
 from companion.estimation.quat import (
     FloatArray,
@@ -167,6 +168,10 @@ class FlightSpec:
     level_calibration: bool = True
     """Level-calibrate the installation before the flight (when the IMU profile has a
     levelling error: `ImuSim.level_calibration`), as ``companion sim`` does."""
+    imu_part_seed: int | None = None
+    """Seed of the IMU part itself (its drawn errors, bias walks and noise); None: from
+    ``seed``. Two flights with one part seed and different seeds fly the same part on
+    different days: what a calibration learnt in one can be tried in the other."""
     horizon_camera: str = ""
     """``""``: horizon fixes are the truth plus ``horizon_noise_rad`` of white noise. A
     disturbance level of :class:`companion.sim.camera.SimCamera` (``none``, ``light``,
@@ -329,7 +334,11 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     throttle = float(model.trim_controls.throttle)
     pilot = Pilot(spec.scenario, spec.seed, aircraft=spec.aircraft, trim_throttle=throttle)
     settle_sticks = [1500, 1500, int(round(1000 + 1000 * throttle)), 1500, 1000, 1500, 1500, 1500]
-    imu_sim = ImuSim(np.random.default_rng(rng.integers(2**63)), sensors.imu)
+    imu_rng = np.random.default_rng(rng.integers(2**63))
+    if spec.imu_part_seed is not None:
+        imu_rng = np.random.default_rng(
+            np.random.default_rng(spec.imu_part_seed).integers(2**63))
+    imu_sim = ImuSim(imu_rng, sensors.imu)
     gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
     gps_every = int(round(IMU_RATE_HZ / sensors.gps.rate_hz))
     hzn_rng = np.random.default_rng(rng.integers(2**63))
@@ -563,6 +572,9 @@ class EskfRun:
     gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((0, 9)))
     """The estimated gyro matrix error ``M`` (row-major) per tick, NaN before the start; once
     a second (every ``GYRO_MATRIX_EVERY`` ticks) after :func:`evaluate` compacts the run."""
+    learnt: GyroCalibration | None = None
+    """What the filter had learnt of the gyro at the end (None if it never ran): what
+    ``companion estimation calibration`` would hand to the next flight."""
 
 
 HEADING_SEED_OFFSET = 7919
@@ -693,6 +705,9 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
         pd_checks=pd_checks, pd_failures=pd_failures, non_finite=non_finite,
         exceptions=exceptions, gps_accepted=est.gps_accepted, gps_rejected=est.gps_rejected,
         horizon_used=est.horizon_used, moving_start=est.moving_start, gyro_matrix=gm,
+        learnt=(calibration_from_row([v for part in f.gyro_calibration() for v in part],
+                                     float(rec.t_s[-1] - rec.t_s[max(start, 0)]))
+                if f is not None and start >= 0 else None),
     )
 
 
@@ -898,7 +913,7 @@ def _compact(run: EskfRun) -> EskfRun:
         pd_checks=run.pd_checks, pd_failures=run.pd_failures, non_finite=run.non_finite,
         exceptions=run.exceptions, gps_accepted=run.gps_accepted, gps_rejected=run.gps_rejected,
         horizon_used=run.horizon_used, moving_start=run.moving_start,
-        gyro_matrix=run.gyro_matrix[::GYRO_MATRIX_EVERY].copy())
+        gyro_matrix=run.gyro_matrix[::GYRO_MATRIX_EVERY].copy(), learnt=run.learnt)
 
 
 def _f32(errors: FilterErrors) -> FilterErrors:
