@@ -30,12 +30,18 @@ Studies (each prints a markdown table):
   with and without horizon aiding: the real detector on frames rendered at the true attitude
   with the thesis's video disturbances (``--camera``), 10 Hz, 0.1 s to the estimator, its
   failure and gross-error rates in the run printed beside the figures;
-* cost: step time of the estimator on one flight after the parallel work is done.
+* cost: step time of the estimator on one flight after the parallel work is done;
+* second flight (``--second-flight``): every accuracy flight's part flies again on another
+  day (seed + ``SECOND_SEED_OFFSET``, same ``imu_part_seed``: other pilot jitter, air, GPS
+  error and turn-on warm-up path), once from the defaults and once from the gyro calibration
+  the first flight learnt (``companion estimation calibration``'s parameters, from the
+  first flight's estimator run).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -72,6 +78,9 @@ TARGETS = {
 """Issue #15's targets; ``hpos_over_gps`` is the horizontal position RMSE over the receiver's
 own horizontal error RMSE in the same flights (no worse than the receiver)."""
 BLOCKS = ("pos", "vel", "att", "gyro bias", "accel bias")
+SECOND_SEED_OFFSET = 100
+"""The second flight of a part flies seed + this (300.. for the default accuracy seeds:
+never tuned on either)."""
 IMU_ONLY = IMU_ONLY_FILTERS
 
 
@@ -156,6 +165,44 @@ def build_jobs(args: argparse.Namespace) -> list[Job]:
                                   duration_s=args.duration_s, **_sensors(args))
                 jobs.append(Job("accuracy", spec, _variants(args), IMU_ONLY))
     return jobs
+
+
+def second_flight_jobs(args: argparse.Namespace, accuracy: Sequence[Outcome]) -> list[Job]:
+    """Each accuracy flight's part again, from the defaults and from what it learnt."""
+    from companion.estimation.calibration import next_flight_params
+
+    defaults = {**estimator_param_defaults(), **args.params}
+    jobs: list[Job] = []
+    for out in accuracy:
+        run = out.result.eskf.get("eskf") if out.result is not None else None
+        if run is None or run.learnt is None:
+            continue
+        spec = dataclasses.replace(out.job.spec, seed=out.job.spec.seed + SECOND_SEED_OFFSET,
+                                   imu_part_seed=out.job.spec.seed)
+        learnt = {k.removeprefix("EST_"): v
+                  for k, v in next_flight_params(run.learnt, defaults).items()}
+        base = {"eskf_kwargs": args.eskf_kwargs, "check_pd_every": args.pd_every}
+        jobs.append(Job("second", spec, {
+            "eskf": EskfOptions(params=args.params, **base),
+            "learnt": EskfOptions(params={**args.params, **learnt}, **base)}, ()))
+    return jobs
+
+
+def print_second(figures: dict[str, dict[str, Any]], seeds: int) -> None:
+    print(f"\n### Second flight of the same part ({seeds} parts per row, seeds "
+          f"+{SECOND_SEED_OFFSET}: from the defaults, and from the gyro calibration the first "
+          "flight learnt)\n")
+    print("| configuration | start | incl RMSE deg | incl p95 | incl max | heading RMSE deg "
+          "| faults |")
+    print("|---|---|---|---|---|---|---|")
+    for cfg, rows in sorted(figures.items()):
+        for name, label in (("eskf", "defaults"), ("learnt", "learnt calibration")):
+            r = rows.get(name)
+            if r is None:
+                continue
+            print(f"| {cfg} | {label} | {r['incl_rmse_deg']:.3f} | {r['incl_p95_deg']:.2f} | "
+                  f"{r['incl_max_deg']:.2f} | {r.get('heading_rmse_deg', math.nan):.2f} | "
+                  f"{r['faults']} |")
 
 
 def run_jobs(jobs: Sequence[Job], workers: int) -> list[Outcome]:
@@ -664,6 +711,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--camera", default="thesis", choices=("", "none", "light", "thesis"),
                    help="horizon fixes of the outage study: the detector on rendered frames "
                         "with these disturbances (default thesis), or '' for truth + 1 deg noise")
+    p.add_argument("--second-flight", action="store_true",
+                   help="also fly each accuracy flight's part again, from the defaults and "
+                        "from the gyro calibration the first flight learnt")
     p.add_argument("--json", type=Path, help="also write every figure to this file")
     args = p.parse_args(argv)
     args.seeds = args.seeds if args.seeds is not None else (3 if args.quick else 20)
@@ -708,6 +758,15 @@ def main(argv: list[str] | None = None) -> int:
     gyro_matrix = gyro_matrix_figures(accuracy)
     long = long_figures(outcomes, args.warmup_s)
     outage = outage_figures(outcomes)
+    second: dict[str, dict[str, Any]] = {}
+    if args.second_flight:
+        second_jobs = second_flight_jobs(args, accuracy)
+        print(f"estimation SITL bench: {len(second_jobs)} second flights", file=sys.stderr,
+              flush=True)
+        second_out = run_jobs(second_jobs, args.workers)
+        failed += [o for o in second_out if o.result is None]
+        outcomes = [*outcomes, *second_out]
+        second = accuracy_figures(second_out, args.warmup_s)
     timing = timing_figures(args)
     targets = target_rows(acc, nees, timing, long)
     elapsed = time.monotonic() - t0
@@ -729,6 +788,8 @@ def main(argv: list[str] | None = None) -> int:
     print_health(acc, long)
     if outage:
         print_outage(outage, args)
+    if second:
+        print_second(second, args.seeds)
     print_timing(timing)
     print_targets(targets)
     if failed:
@@ -738,7 +799,7 @@ def main(argv: list[str] | None = None) -> int:
             "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
             "elapsed_s": elapsed, "flight_cpu_s": cpu_s, "accuracy": acc, "nees": nees, "long": long,
             "gyro_matrix": gyro_matrix,
-            "outage": outage, "timing": timing, "targets": targets,
+            "outage": outage, "timing": timing, "targets": targets, "second_flight": second,
             "failed": [o.error for o in failed]}, indent=2, default=float))
     return 1 if failed else 0
 

@@ -103,15 +103,15 @@ def test_next_flight_priors_narrow_to_what_was_learnt_within_floor_and_default()
     assert "EST_GS_STD" not in off and "EST_GB_TEMP" not in off
 
 
-def _fly(tmp: Path, duration_s: float, params: str = "") -> Path:
+def _fly(tmp: Path, duration_s: float, params: str = "", **sim: int) -> Path:
     cfg = Config()
     cfg.logs.dir = str(tmp / "flights")
     cfg.params.file = str(tmp / "params.parm")
     if params:
         tmp.mkdir(parents=True, exist_ok=True)
         (tmp / "params.parm").write_text(params)
-    summary = run_lockstep(cfg, SimOptions(scenario="turns", seed=4, imu_profile="consumer"),
-                           duration_s, handle_signals=False)
+    opts = SimOptions(scenario="turns", imu_profile="consumer", **{"seed": 4, **sim})
+    summary = run_lockstep(cfg, opts, duration_s, handle_signals=False)
     return Path(summary["flight_dir"])
 
 
@@ -131,7 +131,7 @@ def test_a_flight_learns_a_calibration_the_cli_hands_to_the_next_flight(tmp_path
             if problem is None}
     assert rows["EST_GM_ZZ"] == pytest.approx(cal.matrix[8], abs=1e-6)
     assert set(rows) >= {"EST_GM_XY", "EST_GT_Z", "EST_GS_STD", "EST_GB_TEMP"}
-    second = _fly(tmp_path / "b", 5.0, out.read_text())
+    second = _fly(tmp_path / "b", 5.0, out.read_text(), seed=5, imu_seed=4)  # same part
     start = read_log(second / "estimator.bin").data(3)[0]
     assert start["gm_zz"] == pytest.approx(cal.matrix[8], abs=2e-6)
     assert start["gt_x"] == pytest.approx(cal.temp_rad_s_per_c[0], abs=1e-7)

@@ -77,6 +77,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
                      aircraft=args.aircraft, scale=scale,
                      wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
                      gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
+                     imu_seed=args.imu_seed,
                      faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
                      auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
                      no_noise=args.no_noise, imu_profile=args.imu_profile,
@@ -195,6 +196,10 @@ def add_commands(sub: argparse._SubParsersAction,
                    help="level, turns, climb, aerobatic, mixed (default), auto")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--seed-offset", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--imu-seed", type=int, metavar="N",
+                   help="fly the IMU part of seed N (its errors and noise) whatever --seed "
+                        "is: the same part on another day, e.g. with the gyro calibration "
+                        "`companion estimation calibration` took from its last flight")
     p.add_argument("--aircraft", default="c172p", help="JSBSim model: c172p (default) or j3cub")
     p.add_argument("--vehicles", type=int, default=1, help="fly K aircraft (ids 1..K)")
     p.add_argument("--mavlink-port-step", type=int, default=0, metavar="N",

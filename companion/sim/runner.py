@@ -46,6 +46,8 @@ class SimOptions:
     wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gps_latency_s: float | None = None
     """Overrides the GPS profile's mean latency (None: the profile's)."""
+    imu_seed: int | None = None
+    """The IMU part's own seed (None: from ``seed``): `WorldOptions.imu_seed`."""
     gps_ashtech: bool = False
     faults: list[str] = field(default_factory=list)
     vanish: list[str] = field(default_factory=list)
@@ -85,6 +87,8 @@ class WorldProcess:
             cmd += ["--duration", str(duration_s + 5.0)]  # outlive the runtime, never starve it
         if opts.gps_latency_s is not None:
             cmd += ["--gps-latency", str(opts.gps_latency_s)]
+        if opts.imu_seed is not None:
+            cmd += ["--imu-seed", str(opts.imu_seed)]
         for option, value in (("--imu-profile", opts.imu_profile),
                               ("--gps-profile", opts.gps_profile),
                               ("--turbulence", opts.turbulence)):

@@ -105,6 +105,9 @@ class WorldOptions:
     duration_s: float = 0.0  # 0: until signalled
     gps_latency_s: float | None = None
     """Overrides the GPS profile's mean latency (None: the profile's)."""
+    imu_seed: int | None = None
+    """Seed of the IMU part (its drawn errors and noise; None: from ``seed``): one part flown
+    on several days, e.g. to try the gyro calibration one flight learnt in the next."""
     gps_ashtech: bool = False
     faults: dict[str, FaultPlan] = field(default_factory=dict)
     vanish: list[Vanish] = field(default_factory=list)
@@ -200,7 +203,10 @@ class World:
                            auto_switch_s=opts.auto_switch_s, trim_throttle=trim_throttle)
         self.settle_sticks = [1500, 1500, int(round(1000 + 1000 * trim_throttle)), 1500,
                               1000, 1500, 1500, 1500]
-        self.imu = ImuSim(np.random.default_rng(rng.integers(2**63)), sensors.imu)
+        imu_rng = np.random.default_rng(rng.integers(2**63))
+        if opts.imu_seed is not None:  # the part the flight with seed = imu_seed carries
+            imu_rng = np.random.default_rng(np.random.default_rng(opts.imu_seed).integers(2**63))
+        self.imu = ImuSim(imu_rng, sensors.imu)
         self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
         self.gps_every = int(round(1.0 / (IMU_DT_S * sensors.gps.rate_hz)))
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
@@ -585,6 +591,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--flight-dir", type=Path)
     ap.add_argument("--duration", type=float, default=0.0)
     ap.add_argument("--gps-latency", type=float)
+    ap.add_argument("--imu-seed", type=int)
     ap.add_argument("--imu-profile", choices=list(IMU_PROFILES))
     ap.add_argument("--gps-profile", choices=list(GPS_PROFILES))
     ap.add_argument("--turbulence", choices=list(TURBULENCE))
@@ -608,6 +615,7 @@ def main(argv: list[str] | None = None) -> int:
         wind_ned_m_s=tuple(args.wind), scale=args.scale,
         epoch=tuple(args.epoch) if args.epoch else None, device_dir=args.device_dir,
         flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
+        imu_seed=args.imu_seed,
         gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
         imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
         auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera,
