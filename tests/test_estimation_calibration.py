@@ -174,3 +174,14 @@ def test_the_next_flight_of_the_same_part_is_better_for_what_the_first_learnt() 
         figures[name] = (float(np.sqrt(np.mean(incl**2))), float(incl.max()))
     assert figures["learnt"][0] < 0.9 * figures["cold"][0]
     assert figures["learnt"][1] < 0.8 * figures["cold"][1]
+
+
+def test_a_part_switched_on_again_keeps_its_errors_but_not_its_turn_on_bias() -> None:
+    first = record_flight(FlightSpec(seed=6, duration_s=2.0))
+    again = record_flight(FlightSpec(seed=14, imu_part_seed=6, duration_s=2.0))
+    other = record_flight(FlightSpec(seed=14, duration_s=2.0))
+    assert np.array_equal(first.imu_gyro_matrix, again.imu_gyro_matrix)
+    assert np.array_equal(first.imu_misalignment_rad, again.imu_misalignment_rad)
+    assert not np.array_equal(first.imu_gyro_matrix, other.imu_gyro_matrix)
+    # a new power-on: its own turn-on bias, not the first flight's
+    assert np.abs(first.gyro_bias_true_rad_s[0] - again.gyro_bias_true_rad_s[0]).max() > 1e-4

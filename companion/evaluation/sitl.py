@@ -169,9 +169,11 @@ class FlightSpec:
     """Level-calibrate the installation before the flight (when the IMU profile has a
     levelling error: `ImuSim.level_calibration`), as ``companion sim`` does."""
     imu_part_seed: int | None = None
-    """Seed of the IMU part itself (its drawn errors, bias walks and noise); None: from
-    ``seed``. Two flights with one part seed and different seeds fly the same part on
-    different days: what a calibration learnt in one can be tried in the other."""
+    """Seed of the IMU part itself; None: from ``seed``. The part of the flight with that
+    seed, switched on again (`ImuErrorModel.power_on_again`): the same scale factors,
+    cross-axis terms, misalignment and temperature coefficients, a turn-on bias, noise and
+    walks of this flight's own. What a calibration learnt in one flight can be tried in
+    another."""
     horizon_camera: str = ""
     """``""``: horizon fixes are the truth plus ``horizon_noise_rad`` of white noise. A
     disturbance level of :class:`companion.sim.camera.SimCamera` (``none``, ``light``,
@@ -335,10 +337,12 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     pilot = Pilot(spec.scenario, spec.seed, aircraft=spec.aircraft, trim_throttle=throttle)
     settle_sticks = [1500, 1500, int(round(1000 + 1000 * throttle)), 1500, 1000, 1500, 1500, 1500]
     imu_rng = np.random.default_rng(rng.integers(2**63))
-    if spec.imu_part_seed is not None:
-        imu_rng = np.random.default_rng(
-            np.random.default_rng(spec.imu_part_seed).integers(2**63))
-    imu_sim = ImuSim(imu_rng, sensors.imu)
+    if spec.imu_part_seed is None:
+        imu_sim = ImuSim(imu_rng, sensors.imu)
+    else:  # the part of the flight with that seed, switched on again
+        imu_sim = ImuSim(np.random.default_rng(
+            np.random.default_rng(spec.imu_part_seed).integers(2**63)), sensors.imu)
+        imu_sim.errors = imu_sim.errors.power_on_again(imu_rng)
     gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
     gps_every = int(round(IMU_RATE_HZ / sensors.gps.rate_hz))
     hzn_rng = np.random.default_rng(rng.integers(2**63))

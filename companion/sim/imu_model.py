@@ -174,6 +174,22 @@ class ImuErrorModel:
         twin._gyro_matrix, twin._accel_matrix = [], []
         return twin
 
+    def power_on_again(self, rng: np.random.Generator) -> ImuErrorModel:
+        """This part switched on again on another day: the same scale factors, cross-axis
+        terms, misalignment, g-sensitivity and temperature coefficients, a new turn-on bias
+        (redrawn from ``rng``, as a real part's turn-on repeatability does) and its own noise,
+        walk and instability from ``rng``."""
+        twin = self.spare(rng)
+        cfg = self.config
+        twin.gyro_walk_bias_rad_s = [float(v) for v in
+                                     rng.normal(0.0, cfg.gyro_bias_sigma_rad_s, 3)]
+        twin.accel_walk_bias_m_s2 = [float(v) for v in
+                                     rng.normal(0.0, cfg.accel_bias_sigma_m_s2, 3)]
+        twin.gm_gyro_rad_s = (rng.standard_normal(3) * cfg.gyro_bias_instability_rad_s).tolist()
+        twin.gm_accel_m_s2 = (rng.standard_normal(3)
+                              * cfg.accel_bias_instability_m_s2).tolist()
+        return twin
+
     # ------------------------------------------------------------------ helpers
     def _refresh_matrices(self, temperature_c: float) -> None:
         d_t = temperature_c - CALIBRATION_TEMPERATURE_C

@@ -106,8 +106,10 @@ class WorldOptions:
     gps_latency_s: float | None = None
     """Overrides the GPS profile's mean latency (None: the profile's)."""
     imu_seed: int | None = None
-    """Seed of the IMU part (its drawn errors and noise; None: from ``seed``): one part flown
-    on several days, e.g. to try the gyro calibration one flight learnt in the next."""
+    """Seed of the IMU part (None: from ``seed``): the part of the flight with that seed,
+    switched on again (`ImuErrorModel.power_on_again`: same scale, cross-axis, misalignment and
+    temperature coefficients; turn-on bias and noise from this flight's seed), e.g. to try
+    the gyro calibration one flight learnt in the next."""
     gps_ashtech: bool = False
     faults: dict[str, FaultPlan] = field(default_factory=dict)
     vanish: list[Vanish] = field(default_factory=list)
@@ -204,9 +206,12 @@ class World:
         self.settle_sticks = [1500, 1500, int(round(1000 + 1000 * trim_throttle)), 1500,
                               1000, 1500, 1500, 1500]
         imu_rng = np.random.default_rng(rng.integers(2**63))
-        if opts.imu_seed is not None:  # the part the flight with seed = imu_seed carries
-            imu_rng = np.random.default_rng(np.random.default_rng(opts.imu_seed).integers(2**63))
-        self.imu = ImuSim(imu_rng, sensors.imu)
+        if opts.imu_seed is None:
+            self.imu = ImuSim(imu_rng, sensors.imu)
+        else:  # the part the flight with seed = imu_seed carries, switched on again
+            self.imu = ImuSim(np.random.default_rng(
+                np.random.default_rng(opts.imu_seed).integers(2**63)), sensors.imu)
+            self.imu.errors = self.imu.errors.power_on_again(imu_rng)
         self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
         self.gps_every = int(round(1.0 / (IMU_DT_S * sensors.gps.rate_hz)))
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
