@@ -31,7 +31,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("mavlink", []),
     ("gcs_transfer", []),
     ("estimation", ["--full"]),
-    ("estimation_sitl", []),
+    ("estimation_sitl", ["--second-flight"]),
     ("estimation_budget", []),
     ("horizon", []),
     ("report", []),
