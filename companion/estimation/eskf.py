@@ -1370,8 +1370,9 @@ class Eskf:
             self.rejected_inputs += 1
             return False
         if not (np.isfinite(m).all() and np.isfinite(k).all()
-                and float(np.abs(m).max()) <= self.max_gyro_matrix
-                and float(np.abs(k).max()) <= MAX_GYRO_TEMP_RAD_S_PER_C):
+                and float(np.abs(m).max()) <= self.max_gyro_matrix * (1.0 + 1e-6)
+                and float(np.abs(k).max()) <= MAX_GYRO_TEMP_RAD_S_PER_C * (1.0 + 1e-6)):
+            # (the tolerance lets a float32 parameter at its range's end through)
             self.rejected_inputs += 1
             return False
         if self._initialised:

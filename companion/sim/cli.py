@@ -197,9 +197,11 @@ def add_commands(sub: argparse._SubParsersAction,
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--seed-offset", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--imu-seed", type=int, metavar="N",
-                   help="fly the IMU part of seed N (its errors and noise) whatever --seed "
-                        "is: the same part on another day, e.g. with the gyro calibration "
-                        "`companion estimation calibration` took from its last flight")
+                   help="fly the IMU part of seed N whatever --seed is: its scale factors, "
+                        "cross-axis terms, misalignment and temperature coefficients, with a "
+                        "turn-on bias and noise of this flight's own (the same part switched on "
+                        "again), e.g. to try the gyro calibration `companion estimation "
+                        "calibration` took from its last flight")
     p.add_argument("--aircraft", default="c172p", help="JSBSim model: c172p (default) or j3cub")
     p.add_argument("--vehicles", type=int, default=1, help="fly K aircraft (ids 1..K)")
     p.add_argument("--mavlink-port-step", type=int, default=0, metavar="N",
