@@ -45,14 +45,24 @@ def render(reg: ParamRegistry) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import argparse
+
     from companion.runtime import declared_registry
 
-    args = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(prog="python -m companion.docgen",
+                                 description="Write the parameter reference (docs/parameters.md) "
+                                             "from every parameter's metadata.")
+    ap.add_argument("output", nargs="?", type=Path, help="file to write (default: stdout)")
+    args = ap.parse_args(sys.argv[1:] if argv is None else argv)
     text = render(declared_registry(Config()))
-    if args:
-        Path(args[0]).write_text(text, encoding="utf-8")
-    else:
+    if args.output is None:
         sys.stdout.write(text)
+        return 0
+    try:
+        args.output.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        sys.stderr.write(f"companion.docgen: cannot write {args.output}: {exc.strerror}\n")
+        return 1
     return 0
 
 
