@@ -298,11 +298,45 @@ def run_fleet(argv_base: list[str], vehicles: int, legacy_listen: int,
                "--legacy-listen", str(legacy_listen + i - 1),
                "--params-file", f"params-v{i}.parm", "--seed-offset", str(i - 1)]
         procs.append(subprocess.Popen(cmd, env={**os.environ}))
+
+    stopping: list[int] = []
+
+    def stop_all(signum: int, _frame: object) -> None:
+        # every aircraft lands its logs on SIGINT; a fleet stopped with SIGTERM (systemd, kill)
+        # must not leave them flying as orphans
+        log.info("fleet: signal %d, stopping %d aircraft", signum, len(procs))
+        stopping.append(signum)
+        _interrupt(procs)
+
+    # explicit handlers, not Python's KeyboardInterrupt: a fleet started with SIGINT ignored
+    # (`nohup ... &`, a CI job's background step) would otherwise never stop on it
+    stops = (signal.SIGINT, signal.SIGTERM)
+    old = ({s: signal.signal(s, stop_all) for s in stops}
+           if threading.current_thread() is threading.main_thread() else {})
     codes = []
     try:
-        codes = [p.wait() for p in procs]
-    except KeyboardInterrupt:
         for p in procs:
-            p.send_signal(signal.SIGINT)
-        codes = [p.wait() for p in procs]
+            while True:
+                try:
+                    codes.append(p.wait(timeout=FLEET_RESEND_S))
+                    break
+                except subprocess.TimeoutExpired:
+                    if stopping:
+                        # an aircraft that was still starting when the signal came may have
+                        # had SIGINT ignored (inherited) until its runtime took it over
+                        _interrupt(procs)
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
     return max(codes) if codes else 0
+
+
+FLEET_RESEND_S = 1.0
+"""While a stopping fleet waits for its aircraft, it repeats SIGINT this often to those still
+running (a stop request is idempotent in the runtime)."""
+
+
+def _interrupt(procs: list[subprocess.Popen[bytes]]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
