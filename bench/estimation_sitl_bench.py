@@ -181,10 +181,10 @@ def second_flight_jobs(args: argparse.Namespace, accuracy: Sequence[Outcome]) ->
                                    imu_part_seed=out.job.spec.seed)
         learnt = {k.removeprefix("EST_"): v
                   for k, v in next_flight_params(run.learnt, defaults).items()}
-        base = {"eskf_kwargs": args.eskf_kwargs, "check_pd_every": args.pd_every}
+        cold = _variants(args)["eskf"]
         jobs.append(Job("second", spec, {
-            "eskf": EskfOptions(params=args.params, **base),
-            "learnt": EskfOptions(params={**args.params, **learnt}, **base)}, ()))
+            "eskf": cold, "learnt": dataclasses.replace(cold, params={**args.params, **learnt})},
+            ()))
     return jobs
 
 

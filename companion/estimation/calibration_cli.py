@@ -34,14 +34,6 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_calibration)
 
 
-def _defaults() -> dict[str, float]:
-    from companion.estimation.thread import EstimatorThread
-
-    prefix = "EST_"
-    return {s.name.removeprefix(prefix): float(s.default)
-            for s in EstimatorThread.declare_params("EST")}
-
-
 def _param_text(source: Path, flight_s: float, params: dict[str, float]) -> str:
     from companion.core.params import ParamType, format_value
 
@@ -59,13 +51,14 @@ def cmd_calibration(args: argparse.Namespace) -> int:
         learnt_from_log,
         next_flight_params,
     )
+    from companion.estimation.thread import estimator_param_defaults
 
     try:
         cal = learnt_from_log(args.log)
     except CalibrationLogError as exc:
         print(f"companion estimation calibration: {exc}", file=sys.stderr)
         return EXIT_BAD_LOG
-    params = next_flight_params(cal, _defaults())
+    params = next_flight_params(cal, estimator_param_defaults())
     if args.json:
         out: dict[str, Any] = {
             "log": str(args.log), "flight_s": round(cal.flight_s, 1),

@@ -80,6 +80,17 @@ temperature coefficient with their 1-sigma, so ``companion estimation calibratio
 them to the next flight (companion.estimation.calibration)."""
 
 
+def estimator_param_defaults() -> dict[str, float]:
+    """The estimator thread's parameter defaults, by suffix (``GPS_LAG``, ``GYR_NSD``...).
+
+    Read from the class's metadata (no thread is built), so evaluations and tools follow the
+    thread's defaults instead of copying them.
+    """
+    prefix = VEHICLE_TASKS["estimator"].param_prefix
+    return {spec.name.removeprefix(prefix + "_"): float(spec.default)
+            for spec in EstimatorThread.declare_params(prefix)}
+
+
 class EstimatorThread(ManagedThread):
     def __init__(self, *, task: Task = VEHICLE_TASKS["estimator"]) -> None:
         super().__init__(task)

@@ -62,7 +62,7 @@ from companion.estimation.quat import (
     quat_to_rotmat,
     quat_to_rotvec,
 )
-from companion.estimation.thread import EstimatorThread
+from companion.estimation.thread import estimator_param_defaults
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
 from companion.sim.profiles import (
@@ -73,7 +73,6 @@ from companion.sim.profiles import (
     resolve_sensors,
 )
 from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
-from companion.tasks import VEHICLE_TASKS
 
 log = logging.getLogger(__name__)
 
@@ -336,13 +335,8 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
     throttle = float(model.trim_controls.throttle)
     pilot = Pilot(spec.scenario, spec.seed, aircraft=spec.aircraft, trim_throttle=throttle)
     settle_sticks = [1500, 1500, int(round(1000 + 1000 * throttle)), 1500, 1000, 1500, 1500, 1500]
-    imu_rng = np.random.default_rng(rng.integers(2**63))
-    if spec.imu_part_seed is None:
-        imu_sim = ImuSim(imu_rng, sensors.imu)
-    else:  # the part of the flight with that seed, switched on again
-        imu_sim = ImuSim(np.random.default_rng(
-            np.random.default_rng(spec.imu_part_seed).integers(2**63)), sensors.imu)
-        imu_sim.errors = imu_sim.errors.power_on_again(imu_rng)
+    imu_sim = ImuSim.of_part(np.random.default_rng(rng.integers(2**63)), sensors.imu,
+                             spec.imu_part_seed)
     gps_sim = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
     gps_every = int(round(IMU_RATE_HZ / sensors.gps.rate_hz))
     hzn_rng = np.random.default_rng(rng.integers(2**63))
@@ -474,17 +468,6 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
 
 # ---------------------------------------------------------------------------------------------
 # the project's estimator, fed as the estimator thread feeds it
-
-
-def estimator_param_defaults() -> dict[str, float]:
-    """The estimator thread's parameter defaults, by suffix (``GPS_LAG``, ``GYR_NSD``...).
-
-    Read from the estimator's class metadata (no thread is built), so the evaluation follows
-    the thread's defaults instead of copying them.
-    """
-    prefix = VEHICLE_TASKS["estimator"].param_prefix
-    return {spec.name.removeprefix(prefix + "_"): float(spec.default)
-            for spec in EstimatorThread.declare_params(prefix)}
 
 
 class EskfAsThread(EstimatorCore):

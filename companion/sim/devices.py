@@ -205,6 +205,19 @@ class ImuSim:
         self._words: tuple[int, ...] = ()
         self._temperature_c = cfg.temperature_at(0.0)
 
+    @classmethod
+    def of_part(cls, rng: np.random.Generator, config: ImuSimConfig,
+                part_seed: int | None = None) -> ImuSim:
+        """The flight's IMU, drawn from ``rng``; with ``part_seed`` the part of the flight with
+        that seed instead, switched on again (`ImuErrorModel.power_on_again`: its own turn-on
+        bias and noise from ``rng``), so one part can fly on several days."""
+        if part_seed is None:
+            return cls(rng, config)
+        imu = cls(np.random.default_rng(np.random.default_rng(part_seed).integers(2**63)),
+                  config)
+        imu.errors = imu.errors.power_on_again(rng)
+        return imu
+
     @property
     def last_rates_rad_s(self) -> np.ndarray:
         """Measured (biased, noisy, not yet wire-quantised) rates of the last frame, rad/s."""

@@ -205,13 +205,8 @@ class World:
                            auto_switch_s=opts.auto_switch_s, trim_throttle=trim_throttle)
         self.settle_sticks = [1500, 1500, int(round(1000 + 1000 * trim_throttle)), 1500,
                               1000, 1500, 1500, 1500]
-        imu_rng = np.random.default_rng(rng.integers(2**63))
-        if opts.imu_seed is None:
-            self.imu = ImuSim(imu_rng, sensors.imu)
-        else:  # the part the flight with seed = imu_seed carries, switched on again
-            self.imu = ImuSim(np.random.default_rng(
-                np.random.default_rng(opts.imu_seed).integers(2**63)), sensors.imu)
-            self.imu.errors = self.imu.errors.power_on_again(imu_rng)
+        self.imu = ImuSim.of_part(np.random.default_rng(rng.integers(2**63)), sensors.imu,
+                                  opts.imu_seed)
         self.gps = GpsSim(np.random.default_rng(rng.integers(2**63)), sensors.gps)
         self.gps_every = int(round(1.0 / (IMU_DT_S * sensors.gps.rate_hz)))
         self.board = ServoBoardSim(np.random.default_rng(rng.integers(2**63)))
