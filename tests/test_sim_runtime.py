@@ -83,7 +83,8 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     truth = read_log(fdir / "truth.bin").data(1)
     assert np.all(np.isfinite(truth["roll_rad"]))
     assert truth["time_s"][-1] - truth["time_s"][0] > duration * 0.9
-    assert summary["simulator"]["real_time_factor"] > 4.0
+    sim = summary["simulator"]
+    assert sim.get("real_time_factor", 0) > 4.0, sim
     check_estimator(fdir, scenario)
     if scenario == "auto":
         check_auto_levels_wings(fdir)

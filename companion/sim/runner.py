@@ -31,6 +31,9 @@ FAST_SCALE = 5.0
 CAMERA_NEEDS_LEGACY = ("--horizon-camera sends HORIZON_ATTITUDE to the legacy command port: "
                        "the legacy protocol must be on (drop --no-legacy)")
 READY_TIMEOUT_S = 60.0
+# The world closes its truth log before it reports: LogService.close may take up to 30 s on a
+# slow disk that still takes writes; past that the world is hung and is killed.
+WORLD_STOP_TIMEOUT_S = 40.0
 
 
 class SimError(RuntimeError):
@@ -126,7 +129,7 @@ class WorldProcess:
         t = threading.Thread(target=reader, daemon=True)
         t.start()
         if not done.wait(READY_TIMEOUT_S) or "devices" not in result:
-            self.stop()
+            self.stop(timeout_s=10.0)
             raise SimError(f"the simulator did not start (exit code {self.proc.returncode})")
         return dict(result["devices"])
 
@@ -151,17 +154,29 @@ class WorldProcess:
         except (BrokenPipeError, OSError):
             log.warning("the simulator is gone: the camera was not retargeted")
 
-    def stop(self, timeout_s: float = 10.0) -> dict[str, Any]:
+    def stop(self, timeout_s: float = WORLD_STOP_TIMEOUT_S) -> dict[str, Any]:
+        """SIGTERM the world and collect its STATS line. A world that gives none (killed after
+        `timeout_s`, or died) still yields figures that say so, with its exit code and the
+        time it was given, instead of an empty dictionary."""
+        t0 = time.monotonic()
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
+        killed = False
         try:
             out, _ = self.proc.communicate(timeout=timeout_s)
         except subprocess.TimeoutExpired:
+            killed = True
             self.proc.kill()
             out, _ = self.proc.communicate()
         for line in (out or "").splitlines():
             if line.startswith("STATS "):
                 self.stats = json.loads(line[6:])
+        if not self.stats:
+            why = (f"killed after {timeout_s:g} s without a report" if killed
+                   else f"exited with code {self.proc.returncode} without a report")
+            log.warning("the simulator %s (its stderr above says why)", why)
+            self.stats = {"stop": f"simulator {why}", "exit_code": self.proc.returncode,
+                          "stop_wait_s": round(time.monotonic() - t0, 2)}
         return self.stats
 
 

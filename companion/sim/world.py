@@ -373,6 +373,11 @@ class World:
         except FlightModelError as exc:
             stop_reason = f"flight model: {exc}"
             log.error("flight model stopped: %s", exc)
+        except Exception as exc:
+            # a fault in a device simulator is a bug to see, but the flight's truth log and
+            # figures are still closed and reported, with the reason, not lost with a traceback
+            stop_reason = f"simulator error: {type(exc).__name__}: {exc}"
+            log.exception("the world stopped at %.3f s", self.t_s)
         finally:
             self._stop.set()
             board.join(1.0)
