@@ -7,6 +7,10 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from companion.sim.runner import SimOptions
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -25,7 +29,6 @@ def cmd_sim(args: argparse.Namespace) -> int:
         CAMERA_NEEDS_LEGACY,
         FAST_SCALE,
         SimError,
-        SimOptions,
         run_fleet,
         run_sim,
     )
@@ -73,17 +76,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if not _configured(args, "legacy.bind"):
         cfg.legacy.bind = "127.0.0.1"
     scale = args.speed if args.speed else (FAST_SCALE if args.fast else 1.0)
-    sim = SimOptions(scenario=args.scenario, seed=args.seed + args.seed_offset,
-                     aircraft=args.aircraft, scale=scale,
-                     wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
-                     gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
-                     imu_seed=args.imu_seed,
-                     faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
-                     auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
-                     no_noise=args.no_noise, imu_profile=args.imu_profile,
-                     gps_profile=args.gps_profile, turbulence=args.turbulence,
-                     horizon_camera=args.horizon_camera,
-                     level_calibration=not args.no_level_cal)
+    sim = sim_options(args, scale)
 
     def live(rt: object) -> None:
         if sys.stderr.isatty() and args.verbose == 0:
@@ -120,6 +113,27 @@ def cmd_sim(args: argparse.Namespace) -> int:
               f"(exit {EXIT_ESCALATED})", file=sys.stderr)
         return EXIT_ESCALATED
     return 0
+
+
+def sim_options(args: argparse.Namespace, scale: float) -> SimOptions:
+    """The simulated world of one aircraft from its command line. In a fleet, aircraft i is
+    started with ``--seed-offset i-1``: its own pilot jitter, air and sensor noise, and with
+    ``--imu-seed N`` its own part too (N + i - 1), as K aircraft carry K IMUs."""
+    # imported here, as in cmd_sim: the runner is loaded only once JSBSim is known to be there
+    from companion.sim.runner import SimOptions  # noqa: F811
+
+    imu_seed = None if args.imu_seed is None else args.imu_seed + args.seed_offset
+    return SimOptions(scenario=args.scenario, seed=args.seed + args.seed_offset,
+                      aircraft=args.aircraft, scale=scale,
+                      wind_ned_m_s=tuple(args.wind) if args.wind else (0.0, 0.0, 0.0),
+                      gps_latency_s=args.gps_latency, gps_ashtech=args.gps_ashtech,
+                      imu_seed=imu_seed,
+                      faults=args.fault, vanish=args.vanish, thread_faults=args.thread_fault,
+                      auto_switch_s=args.auto_switch, clock_steps=args.clock_step,
+                      no_noise=args.no_noise, imu_profile=args.imu_profile,
+                      gps_profile=args.gps_profile, turbulence=args.turbulence,
+                      horizon_camera=args.horizon_camera,
+                      level_calibration=not args.no_level_cal)
 
 
 def _campaign(args: argparse.Namespace) -> int:

@@ -169,8 +169,13 @@ class WorldProcess:
             self.proc.kill()
             out, _ = self.proc.communicate()
         for line in (out or "").splitlines():
-            if line.startswith("STATS "):
-                self.stats = json.loads(line[6:])
+            # the flight model's C++ library writes to the same stdout, maybe without a newline
+            at = line.find("STATS {")
+            if at >= 0:
+                try:
+                    self.stats = json.loads(line[at + 6:])
+                except ValueError:
+                    log.warning("the simulator's report is not JSON: %.200s", line[at:])
         if not self.stats:
             why = (f"killed after {timeout_s:g} s without a report" if killed
                    else f"exited with code {self.proc.returncode} without a report")
