@@ -352,7 +352,7 @@ class Eskf:
         self._gm_prior = np.zeros((3, 3))
         """The gyro matrix a previous flight learnt (`set_gyro_calibration`): the estimate
         starts from it, and with ``gyro_matrix_std`` 0 it is applied as exact."""
-        self._gm_apply = self._gm_on
+        self._set_gm_apply()
         self._gt_prior = (0.0, 0.0, 0.0)
         self._temp_ref_c = math.nan  # temperature at the last counted change
         self._gyro_temp = (0.0, 0.0, 0.0)  # estimated coefficient, rad/s/C (IDX_GYRO_TEMP)
@@ -432,10 +432,23 @@ class Eskf:
         var[IDX_GYRO_BIAS] = self.init_gyro_bias_std_rad_s**2
         var[IDX_ACCEL_BIAS] = self.init_accel_bias_std_m_s2**2
         var[IDX_GPS_LAG] = self.gps_lag_std_s**2 if self._lag_on else FIXED_LAG_VAR
-        var[IDX_GYRO_MATRIX] = self.gyro_matrix_std**2 if self._gm_on else FIXED_LAG_VAR
-        var[IDX_GYRO_TEMP] = (self.gyro_bias_temp_rad_s_per_c**2
-                              if self.gyro_bias_temp_rad_s_per_c > 0.0 else FIXED_LAG_VAR)
+        var[IDX_GYRO_MATRIX] = self._gm_prior_var()
+        var[IDX_GYRO_TEMP] = self._gt_prior_var()
         return np.diag(var)
+
+    def _gm_prior_var(self) -> float:
+        """Variance of each gyro-matrix state at a (re)start: its prior, or a fixed state's."""
+        return self.gyro_matrix_std**2 if self._gm_on else FIXED_LAG_VAR
+
+    def _gt_prior_var(self) -> float:
+        """Variance of each temperature-coefficient state at a (re)start, likewise."""
+        k = self.gyro_bias_temp_rad_s_per_c
+        return k * k if k > 0.0 else FIXED_LAG_VAR
+
+    def _set_gm_apply(self) -> None:
+        """Whether samples are corrected by a matrix: one estimated, or one a previous flight
+        learnt (applied as exact when not estimated). Kept as a flag for `predict`."""
+        self._gm_apply = self._gm_on or bool(self._gm_prior.any())
 
     def initialise(
         self,
@@ -1324,12 +1337,12 @@ class Eskf:
             return False
         self._propagate_covariance()
         self.gyro_matrix_std, self._gm_on = value, value > 0.0
-        self._gm_apply = self._gm_on or bool(self._gm_prior.any())
+        self._set_gm_apply()
         self._q_cache.clear()
         self._set_gyro_matrix(self._gm_prior.copy())
         self._pend_dth_f = (0.0, 0.0, 0.0)
         self._f[IDX_ATT, IDX_GYRO_MATRIX] = 0.0
-        self._inflate(IDX_GYRO_MATRIX, value * value if self._gm_on else FIXED_LAG_VAR)
+        self._inflate(IDX_GYRO_MATRIX, self._gm_prior_var())
         return True
 
     def set_gyro_bias_temp(self, value: float) -> bool:
@@ -1343,7 +1356,7 @@ class Eskf:
         self._propagate_covariance()
         self.gyro_bias_temp_rad_s_per_c = float(value)
         self._gyro_temp = self._gt_prior
-        self._inflate(IDX_GYRO_TEMP, value * value if value > 0.0 else FIXED_LAG_VAR)
+        self._inflate(IDX_GYRO_TEMP, self._gt_prior_var())
         return True
 
     def set_gyro_calibration(self, matrix: ArrayLike, temp_rad_s_per_c: ArrayLike) -> bool:
@@ -1379,15 +1392,13 @@ class Eskf:
             self._propagate_covariance()
         self._gm_prior = m.copy()
         self._gt_prior = (float(k[0]), float(k[1]), float(k[2]))
-        self._gm_apply = self._gm_on or bool(m.any())
+        self._set_gm_apply()
         self._set_gyro_matrix(m.copy())
         self._gyro_temp = self._gt_prior
         self._pend_dth_f = (0.0, 0.0, 0.0)
         if self._initialised:
-            self._inflate(IDX_GYRO_MATRIX, self.gyro_matrix_std**2 if self._gm_on
-                          else FIXED_LAG_VAR)
-            self._inflate(IDX_GYRO_TEMP, self.gyro_bias_temp_rad_s_per_c**2
-                          if self.gyro_bias_temp_rad_s_per_c > 0.0 else FIXED_LAG_VAR)
+            self._inflate(IDX_GYRO_MATRIX, self._gm_prior_var())
+            self._inflate(IDX_GYRO_TEMP, self._gt_prior_var())
         return True
 
     @property
