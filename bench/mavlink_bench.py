@@ -33,6 +33,7 @@ import psutil
 
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, ParamSpec, float_param, int_param
+from companion.vehicle import VEHICLE
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import param_codec
 from gcs_bridge.bridge import MavlinkBridge
@@ -195,7 +196,7 @@ def serve_imu(pty_path: str, port: int, duration_s: float) -> int:
     from companion.drivers.imu import ImuDriver
 
     ctx = RuntimeContext(clock=Clock(), params=ParamRegistry())
-    manager = ThreadManager(ctx, [ImuDriver(pty_path, 115200)])
+    manager = ThreadManager(ctx, [ImuDriver(pty_path, 115200, task=VEHICLE["imu"].task)])
     ctx.params.set("MGR_WDG_GRAN_MS", 10)
     bridge = MavlinkBridge(ctx, manager, [f"udpout:127.0.0.1:{port}?HIGHRES_IMU=100"])
     manager.start()

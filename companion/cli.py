@@ -7,7 +7,6 @@ sub-commands through an `add_commands(subparsers)` function, so this file only r
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
@@ -17,8 +16,10 @@ from typing import Any
 
 from companion import __version__
 from companion.cli_common import add_runtime_arguments, config_from_args, print_summary
-from companion.core.config import ConfigError, load_config
+from companion.core.config import ConfigError
+from companion.core.lazy import load
 from companion.liveview import live_view_bridges
+from companion.vehicle import VEHICLE, load_vehicle_config
 
 log = logging.getLogger("companion")
 
@@ -34,7 +35,7 @@ def cmd_params(args: argparse.Namespace) -> int:
     from companion.core.params import ParamError, format_value
     from companion.runtime import declared_registry
 
-    cfg = load_config(args.config)
+    cfg = load_vehicle_config(args.config)
     reg = declared_registry(cfg)
     path = Path(args.file or cfg.params.file)
     issues = reg.attach_file(path)
@@ -110,12 +111,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     from companion.watchdog.manager import EXIT_ESCALATED
 
     cfg = config_from_args(args)
-    if args.imu:
-        cfg.devices.imu.port = args.imu
-    if args.gps:
-        cfg.devices.gps.port = args.gps
-    if args.servo:
-        cfg.devices.servo.port = args.servo
+    for row in VEHICLE.devices():
+        port = getattr(args, f"device_{row.name}", None)
+        if port:
+            cfg.devices[row.name].port = port
     while True:
         rt = Runtime(cfg, RuntimeOptions(extra_bridges=live_view_bridges(cfg)))
         for issue in rt.param_issues:
@@ -145,8 +144,8 @@ def _provider(module: str, attr: str) -> Callable[..., Any]:
     stops the CLI at start with the module's name, instead of a command that silently vanishes
     (or a runtime that flies without a thread)."""
     try:
-        return getattr(importlib.import_module(module), attr)  # type: ignore[no-any-return]
-    except (ImportError, AttributeError) as exc:
+        return load(f"{module}:{attr}")  # type: ignore[no-any-return]
+    except LookupError as exc:
         raise SystemExit(f"companion: cannot load {module}.{attr}: {exc} (a broken installation: "
                          "reinstall with `pip install -e .` or `make test`)") from None
 
@@ -167,9 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run on real hardware")
     add_runtime_arguments(run)
-    run.add_argument("--imu", metavar="PORT", help="IMU serial port (overrides the configuration)")
-    run.add_argument("--gps", metavar="PORT", help="GPS serial port")
-    run.add_argument("--servo", metavar="PORT", help="servo-board serial port")
+    for row in VEHICLE.devices():  # --imu PORT, --gps PORT ...: one per device of the table
+        run.add_argument(f"--{row.name}", dest=f"device_{row.name}", metavar="PORT",
+                         help=f"{row.name} serial port, overrides the configuration "
+                              f"({row.summary})")
     run.set_defaults(func=cmd_run, fast_exit=True)
 
     _provider("companion.sim.cli", "add_commands")(sub, add_runtime_arguments)

@@ -11,7 +11,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from companion.core.config import Config, apply_override, load_config
+from companion.core.config import Config, apply_override
+from companion.vehicle import load_vehicle_config
 
 __all__ = ["add_runtime_arguments", "config_from_args", "print_summary"]
 
@@ -40,7 +41,7 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    cfg = load_config(args.config)
+    cfg = load_vehicle_config(args.config)
     for item in args.overrides:
         apply_override(cfg, item)
     if args.mavlink is not None:

@@ -17,21 +17,15 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from companion.core.mathutil import clamp
+from companion.core.mathutil import clamp, wrap_pi
 from companion.core.params import ParamSpec, float_param, int_param
 from companion.core.state import ControlOutput, EstimatorState
-from companion.drivers.servo_protocol import CH_THROTTLE, pilot_switch_auto, us_to_throttle
-from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
 
 MODE_OFF, MODE_LEVEL, MODE_ATTITUDE, MODE_LEVEL_ALT, MODE_HEADING_ALT = 0, 1, 2, 3, 4
 MODE_NAMES = {MODE_OFF: "off", MODE_LEVEL: "level", MODE_ATTITUDE: "attitude",
               MODE_LEVEL_ALT: "level+alt", MODE_HEADING_ALT: "heading+alt"}
 FMT_CONTROL = 1
-
-
-def wrap_pi(angle_rad: float) -> float:
-    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass
@@ -68,7 +62,7 @@ class _Settings:
 
 
 class ControlThread(ManagedThread):
-    def __init__(self, *, task: Task = VEHICLE_TASKS["control"]) -> None:
+    def __init__(self, *, task: Task) -> None:
         super().__init__(task)
         self._seen = 0
         self._engaged = False
@@ -146,7 +140,7 @@ class ControlThread(ManagedThread):
         servo = self.ctx.state.servo.read()
         if servo is None or servo.failsafe:
             return False, self._throttle
-        return pilot_switch_auto(servo.pilot_us), us_to_throttle(servo.pilot_us[CH_THROTTLE])
+        return servo.pilot_auto_switch, servo.pilot_throttle
 
     def step(self) -> bool:
         got = self.ctx.state.estimator.wait_newer(self._seen, 0.05, self.ctx.clock)

@@ -35,6 +35,7 @@ from pathlib import Path
 import tomli_w
 
 from companion.core.config import Config
+from companion.vehicle import VEHICLE, fill_device_defaults
 from companion.watchdog.manager import EXIT_ESCALATED
 
 __all__ = ["InstallPlan", "add_commands", "plan_install", "unit_text"]
@@ -43,8 +44,11 @@ UNIT_NAME = "companion.service"
 MANIFEST = ".install-manifest.json"
 WATCHDOG_S = 10
 """The manager wakes every 20 ms and pings every 5 s; 10 s leaves room for a loaded CPU."""
-DEVICE_NAMES = {"imu": "/dev/companion-imu", "gps": "/dev/companion-gps",
-                "servo": "/dev/companion-servo"}
+
+
+def device_names() -> dict[str, str]:
+    """The stable name udev gives each device of the vehicle table: ``/dev/companion-<name>``."""
+    return {row.name: f"/dev/companion-{row.name}" for row in VEHICLE.devices()}
 
 
 @dataclass
@@ -137,9 +141,9 @@ WantedBy=multi-user.target
 
 
 def config_text(plan: InstallPlan) -> str:
-    cfg = Config()
-    for dev, name in DEVICE_NAMES.items():
-        getattr(cfg.devices, dev).port = name
+    cfg = fill_device_defaults(Config(), VEHICLE)
+    for dev, name in device_names().items():
+        cfg.devices[dev].port = name
     data = plan.installed_path(plan.data_dir)
     cfg.logs.dir = str(data / "flights")
     cfg.params.file = str(data / "params.parm")
@@ -158,7 +162,7 @@ def udev_text() -> str:
         "# then `sudo udevadm control --reload && sudo udevadm trigger`.",
         "# A board UART (Raspberry Pi: ttyAMA0 / serial0) needs no rule: name it in the config.",
     ]
-    for dev, name in DEVICE_NAMES.items():
+    for dev, name in device_names().items():
         lines.append(f'#SUBSYSTEM=="tty", ATTRS{{idVendor}}=="0403", ATTRS{{idProduct}}=="6001", '
                      f'ATTRS{{serial}}=="SERIAL-OF-{dev.upper()}", SYMLINK+="{name[5:]}", '
                      'GROUP="dialout", MODE="0660"')

@@ -24,10 +24,9 @@ from companion.core.config import Config
 from companion.core.files import write_json_bounded
 from companion.core.params import FileIssue, ParamRegistry, ParamSpec, int_param
 from companion.core.state import VehicleState
-from companion.drivers.registry import DEVICES, make_driver
 from companion.logs.retention import DiskPolicy, FlightLock
 from companion.service import ServiceNotifications
-from companion.tasks import VEHICLE_TASKS
+from companion.vehicle import VEHICLE, Row, VehicleTable, fill_device_defaults
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, Task, ThreadManager
 from companion.watchdog.manager import MANAGER_PARAMS
 
@@ -87,33 +86,34 @@ class RuntimeOptions:
     the runtime (the live view) attach without the runtime importing them. Not built when dry."""
     log_writer_thread: bool = True
     """False: the logs are written when the owner calls `rt.logs.drain()` (a lockstep flight)."""
+    vehicle: VehicleTable = VEHICLE
+    """The sources and threads this vehicle runs (a plug-in or a test extends the table)."""
 
 
-def vehicle_tasks(cfg: Config, opts: RuntimeOptions) -> list[Task]:
-    """The rows of the task table this vehicle runs, in the table's (start) order: a device's
-    row when its `[devices.<name>]` is enabled, the estimator and control unless switched off."""
-    wanted = {"estimator": opts.estimator, "control": opts.control}
+def vehicle_rows(cfg: Config, opts: RuntimeOptions) -> list[Row]:
+    """The rows of the vehicle's table this run builds, in the table's (start) order: a
+    device's row when its ``[devices.<name>]`` is enabled, a switchable row (the estimator,
+    the control law) unless its `RuntimeOptions` flag is off."""
     rows = []
-    for name, row in VEHICLE_TASKS.items():
-        if name in DEVICES:
-            if getattr(cfg.devices, name).enabled:
+    for row in opts.vehicle:
+        if row.device is not None:
+            settings = cfg.devices.get(row.name, row.device)
+            if settings.enabled:
                 rows.append(row)
-        elif wanted.get(name, True):
+        elif not row.switch or getattr(opts, row.switch):
             rows.append(row)
     return rows
 
 
+def vehicle_tasks(cfg: Config, opts: RuntimeOptions) -> list[Task]:
+    """The supervision rows of `vehicle_rows`."""
+    return [row.task for row in vehicle_rows(cfg, opts)]
+
+
 def build_threads(cfg: Config, opts: RuntimeOptions | None = None) -> list[ManagedThread]:
-    """One thread per row of `vehicle_tasks`, each built by its class from its row."""
-    threads: list[ManagedThread] = []
-    for row in vehicle_tasks(cfg, opts or RuntimeOptions()):
-        if row.name in DEVICES:
-            dev = getattr(cfg.devices, row.name)
-            threads.append(make_driver(row.name, dev.port, dev.baud))
-        else:
-            make: Callable[[], ManagedThread] = row.thread_class()  # built from its own row
-            threads.append(make())
-    return threads
+    """One thread per row of `vehicle_rows`, each built by its class from its row."""
+    opts = opts or RuntimeOptions()
+    return [row.build(cfg.devices.get(row.name)) for row in vehicle_rows(cfg, opts)]
 
 
 class Bridge(Protocol):
@@ -131,6 +131,7 @@ class Runtime:
     def __init__(self, cfg: Config, opts: RuntimeOptions | None = None) -> None:
         self.cfg = cfg
         self.opts = opts or RuntimeOptions()
+        fill_device_defaults(cfg, self.opts.vehicle)  # run.json records every device's settings
         clock = self.opts.clock
         params = ParamRegistry()
         params.declare_all(RUNTIME_PARAMS)
@@ -336,8 +337,8 @@ def declared_specs(cfg: Config) -> list[ParamSpec]:
     """Every parameter the runtime declares for `cfg`, read from the task rows and the bridges'
     declarations: nothing is built, opened or bound."""
     specs = list(RUNTIME_PARAMS) + list(MANAGER_PARAMS)
-    for row in vehicle_tasks(cfg, RuntimeOptions()):
-        specs += row.param_specs()
+    for task in vehicle_tasks(cfg, RuntimeOptions()):
+        specs += task.param_specs()
     if cfg.mavlink.endpoints:
         from gcs_bridge.bridge import declared_params as mavlink_params
 

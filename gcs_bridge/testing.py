@@ -23,7 +23,7 @@ from typing import Any
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, ParamSpec
 from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
-from companion.tasks import VEHICLE_TASKS
+from companion.vehicle import VEHICLE
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
@@ -64,7 +64,7 @@ class SyntheticSource(ManagedThread):
         if kind not in self.RATES_HZ:
             raise ValueError(f"unknown synthetic source {kind!r}")
         # the vehicle's row (name, id, prefix) on a timer instead of a device
-        super().__init__(VEHICLE_TASKS[kind].replace(
+        super().__init__(VEHICLE[kind].task.replace(
             period_ms=1000.0 / self.RATES_HZ[kind], budget_ms=None, watchdog_ms=500,
             implementation=""))
         self.kind = kind

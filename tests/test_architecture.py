@@ -18,13 +18,13 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("core", ("companion.core", "companion")),
     ("logs", ("companion.logs",)),
     ("watchdog", ("companion.watchdog",)),
-    ("flight", ("companion.tasks", "companion.drivers", "companion.estimation",
-                "companion.control")),
+    ("flight", ("companion.drivers", "companion.estimation", "companion.control")),
     ("bridges", ("gcs_bridge", "legacy_protocol")),
-    ("app", ("companion.runtime", "companion.service", "companion.docgen",
+    ("app", ("companion.vehicle", "companion.runtime", "companion.service", "companion.docgen",
              "companion.cli_common")),
+    # the driver replay tool and its command build drivers from the vehicle's table
     ("tools", ("companion.sim", "companion.evaluation", "companion.report", "companion.liveview",
-               "companion.deploy")),
+               "companion.deploy", "companion.drivers.replay", "companion.drivers.cli")),
     ("cli", ("companion.cli", "companion.__main__")),
 ]
 STANDALONE = "horizon"  # a library of its own: it imports nothing of the other packages

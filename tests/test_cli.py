@@ -10,6 +10,7 @@ from companion.cli import main
 from companion.core.config import Config, ConfigError, apply_override, load_config
 from companion.docgen import render
 from companion.runtime import declared_registry
+from companion.vehicle import load_vehicle_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,16 +52,24 @@ def test_damaged_param_file_is_reported_by_line(tmp_path: Path, capsys: pytest.C
 def test_config_file_and_overrides(tmp_path: Path) -> None:
     cfg_file = tmp_path / "a.toml"
     cfg_file.write_text('[vehicle]\nid = 7\n[devices.imu]\nport = "/dev/ttyUSB3"\n')
-    cfg = load_config(cfg_file)
-    assert cfg.vehicle.id == 7 and cfg.devices.imu.port == "/dev/ttyUSB3"
+    cfg = load_vehicle_config(cfg_file)
+    assert cfg.vehicle.id == 7 and cfg.devices["imu"].port == "/dev/ttyUSB3"
+    assert cfg.devices["imu"].baud == 115200 and cfg.devices["servo"].port == "/dev/ttyS2"
     apply_override(cfg, "devices.gps.baud=57600")
     apply_override(cfg, "mavlink.endpoints=udpout:127.0.0.1:14551,tcpin:127.0.0.1:5760")
-    assert cfg.devices.gps.baud == 57600
+    assert cfg.devices["gps"].baud == 57600
     assert cfg.mavlink.endpoints == ["udpout:127.0.0.1:14551", "tcpin:127.0.0.1:5760"]
     with pytest.raises(ConfigError, match="unknown setting 'devices.imu.speed'"):
         apply_override(cfg, "devices.imu.speed=9600")
     with pytest.raises(ConfigError, match="must be int"):
         apply_override(cfg, "vehicle.id=seven")
+    with pytest.raises(ConfigError, match=r"unknown setting 'devices.baro' \(known: imu, gps, servo\)"):
+        apply_override(cfg, "devices.baro.port=/dev/ttyS9")
+    baro = tmp_path / "baro.toml"
+    baro.write_text('[devices.baro]\nport = "/dev/ttyS9"\n')
+    with pytest.raises(ConfigError, match=r"baro.toml: unknown device 'devices.baro' "
+                                          r"\(known: imu, gps, servo\)"):
+        load_vehicle_config(baro)
     bad = tmp_path / "bad.toml"
     bad.write_text("[vehicle]\nidd = 3\n")
     with pytest.raises(ConfigError, match=r"bad.toml: unknown setting 'vehicle.idd'"):

@@ -58,7 +58,7 @@ def test_install_writes_a_verified_unit_a_config_and_a_data_directory(tmp_path: 
     assert f["WorkingDirectory"] == "/var/lib/companion"  # paths as on the running system
     assert "--config /etc/companion/companion.toml" in f["ExecStart"]
     cfg = load_config(prefix / "etc/companion/companion.toml")
-    assert cfg.devices.imu.port == "/dev/companion-imu"
+    assert cfg.devices["imu"].port == "/dev/companion-imu"
     assert cfg.logs.dir == "/var/lib/companion/flights"
     # every rule is commented out until the user fills in the devices' serial numbers
     rules = (prefix / "etc/udev/rules.d/99-companion.rules").read_text().splitlines()

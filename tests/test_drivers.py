@@ -22,6 +22,7 @@ from companion.drivers.gps import GpsDriver
 from companion.drivers.imu import ImuDriver
 from companion.drivers.servo import ServoDriver
 from companion.sim.devices import GpsSim, ImuSim, ServoBoardSim
+from companion.vehicle import VEHICLE, fill_device_defaults
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
 
 
@@ -89,7 +90,7 @@ def imu_stream(n: int, seed: int = 1) -> list[bytes]:
 
 def test_imu_golden_capture_one_byte_at_a_time(imu_dev: FakeDevice) -> None:
     data = data_file("vectors", "imu-cycle.bin").read_bytes()
-    drv = ImuDriver(str(imu_dev.link))
+    drv = ImuDriver(str(imu_dev.link), task=VEHICLE["imu"].task)
     items: list[object] = []
     drv.item_sink = items.append
     with Harness(drv):
@@ -107,7 +108,7 @@ def test_imu_golden_capture_one_byte_at_a_time(imu_dev: FakeDevice) -> None:
 def test_imu_garbage_cut_frames_and_bad_checksums(imu_dev: FakeDevice) -> None:
     frames = imu_stream(300)
     rng = np.random.default_rng(7)
-    drv = ImuDriver(str(imu_dev.link))
+    drv = ImuDriver(str(imu_dev.link), task=VEHICLE["imu"].task)
     sent_good = 0
     with Harness(drv):
         for i, f in enumerate(frames):
@@ -137,7 +138,7 @@ def test_imu_garbage_cut_frames_and_bad_checksums(imu_dev: FakeDevice) -> None:
 
 
 def test_silence_is_reported_and_port_reopened(imu_dev: FakeDevice) -> None:
-    drv = ImuDriver(str(imu_dev.link))
+    drv = ImuDriver(str(imu_dev.link), task=VEHICLE["imu"].task)
     frames = imu_stream(2000)
     stop = threading.Event()
     paused = threading.Event()
@@ -182,7 +183,7 @@ def _gps_on_pty(tmp_path: Path, seed: int) -> tuple[FakeDevice, GpsSim, GpsDrive
     """A GPS driver on a pseudo-terminal, the receiver simulator that writes to it, and the
     list every decoded solution is appended to."""
     dev = FakeDevice(tmp_path, "gps")
-    drv = GpsDriver(str(dev.link))
+    drv = GpsDriver(str(dev.link), task=VEHICLE["gps"].task)
     sols: list[object] = []
     drv.item_sink = sols.append
     return dev, GpsSim(np.random.default_rng(seed)), drv, sols
@@ -246,7 +247,7 @@ def test_servo_exchange_closes_the_loop(tmp_path: Path) -> None:
     dev = FakeDevice(tmp_path, "servo")
     board = ServoBoardSim(np.random.default_rng(5))
     board.set_pilot((1500, 1500, 1600, 1500, 1900, 1500, 1500, 1500))  # switch in auto
-    drv = ServoDriver(str(dev.link))
+    drv = ServoDriver(str(dev.link), task=VEHICLE["servo"].task)
     stop = threading.Event()
 
     def board_loop() -> None:
@@ -281,22 +282,25 @@ def test_servo_exchange_closes_the_loop(tmp_path: Path) -> None:
         dev.close()
 
 
-def test_every_device_is_one_row_of_the_registry() -> None:
-    """The runtime, the replay tool and the report take their devices from one table."""
+def test_every_device_is_one_row_of_the_vehicle_table() -> None:
+    """The runtime, the replay tool, the report and the command line take their devices from
+    one table."""
     from companion.core.config import Config
-    from companion.drivers.registry import DEVICES, make_driver
-    from companion.drivers.replay import KINDS
+    from companion.drivers.replay import KINDS, make_driver
     from companion.report.headers import PRODUCERS
     from companion.runtime import build_threads
+    from companion.vehicle import device_settings
 
-    assert list(DEVICES) == ["imu", "gps", "servo"] == list(KINDS)
-    assert set(DEVICES) <= set(PRODUCERS)
+    devices = [row.name for row in VEHICLE.devices()]
+    assert devices == ["imu", "gps", "servo"] == list(KINDS)
+    assert set(devices) <= set(PRODUCERS)
     cfg = Config()
-    cfg.devices.gps.enabled = False
+    device_settings(cfg, "gps").enabled = False
     assert [t.name for t in build_threads(cfg)] == ["imu", "servo", "estimator", "control"]
-    for name, device in DEVICES.items():
+    for name in devices:
         drv = make_driver(name, "loop://")
-        assert type(drv).__name__ == device.driver and drv.name == name
+        assert drv.task is VEHICLE[name].task and drv.name == name
+        assert f"{type(drv).__module__}:{type(drv).__name__}" == VEHICLE[name].task.implementation
     with pytest.raises(ValueError, match="unknown device 'baro'"):
         make_driver("baro", "loop://")
 
@@ -314,8 +318,9 @@ def test_a_full_disk_turns_one_log_off_reports_it_and_the_driver_flies_on(
     cfg = Config()
     cfg.logs.dir = str(tmp_path)
     cfg.params.file = str(tmp_path / "params.parm")
-    cfg.devices.imu.port = str(imu_dev.link)
-    cfg.devices.gps.enabled = cfg.devices.servo.enabled = False
+    fill_device_defaults(cfg, VEHICLE)
+    cfg.devices["imu"].port = str(imu_dev.link)
+    cfg.devices["gps"].enabled = cfg.devices["servo"].enabled = False
     rt = Runtime(cfg, RuntimeOptions(mavlink=False, legacy=False, estimator=False,
                                      control=False, flight_dir=flight))
     events = rt.manager.subscribe_events(256)
@@ -347,7 +352,7 @@ def test_gps_copies_are_dropped_and_a_utc_jump_is_told_but_midnight_is_not() -> 
     from companion.drivers.gps import GpsDriver
     from companion.drivers.gps_protocol import GpsSolution
 
-    gps = GpsDriver("loop://")
+    gps = GpsDriver("loop://", task=VEHICLE["gps"].task)
     told: list[str] = []
     gps._on_notice = told.append
     t0_ns = 1_000_000_000_000
@@ -382,7 +387,7 @@ def test_gps_heading_reaches_the_flight_only_from_a_receiver_declared_to_send_it
     from companion.drivers.gps import GpsDriver
     from companion.drivers.gps_protocol import GpsSolution
 
-    gps = GpsDriver("loop://")
+    gps = GpsDriver("loop://", task=VEHICLE["gps"].task)
     sol = GpsSolution(utc=100.0, lat_deg=47.0, lon_deg=8.0, alt_m=500.0, fix=1, heading_deg=12.5)
     assert gps.publish(sol, 1_000_000_000) == 1
     fix = gps.ctx.state.gps.read()

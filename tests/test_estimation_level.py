@@ -24,7 +24,7 @@ from companion.estimation.thread import EstimatorThread
 from companion.sim.devices import ImuSim, ImuSimConfig
 from companion.sim.imu_model import rotation_matrix
 from companion.sim.profiles import imu_profile
-from companion.tasks import VEHICLE_TASKS
+from companion.vehicle import VEHICLE
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
@@ -223,8 +223,8 @@ class StillImu(ManagedThread):
     """The IMU thread's row on a 100 Hz timer: a board tilted on a level aircraft, or shaken."""
 
     def __init__(self, roll_deg: float, pitch_deg: float) -> None:
-        super().__init__(VEHICLE_TASKS["imu"].replace(period_ms=10.0, budget_ms=None,
-                                                      watchdog_ms=500, implementation=""))
+        super().__init__(VEHICLE["imu"].task.replace(period_ms=10.0, budget_ms=None,
+                                                     watchdog_ms=500, implementation=""))
         self.m = _board(roll_deg, pitch_deg)
         self.rng = np.random.default_rng(1)
         self.counter = 0
@@ -247,7 +247,7 @@ class StillImu(ManagedThread):
 def bench_runtime(imu: StillImu, endpoint: str) -> Iterator[ParamRegistry]:
     """The real estimator thread, no GPS (a bench), the MAVLink bridge on ``endpoint``."""
     ctx = RuntimeContext(params=ParamRegistry(), home_lla=(47.0, 8.0, 500.0))
-    manager = ThreadManager(ctx, [imu, EstimatorThread()])
+    manager = ThreadManager(ctx, [imu, EstimatorThread(task=VEHICLE["estimator"].task)])
     ctx.params.set("MGR_WDG_GRAN_MS", 10)
     bridge = MavlinkBridge(ctx, manager, [endpoint])
     manager.start()

@@ -32,6 +32,7 @@ from companion.evaluation.sitl import (
     run_vqf,
     steady_turn_mask,
 )
+from companion.vehicle import VEHICLE
 from companion.watchdog.thread import RuntimeContext
 
 WARMUP_S = 30.0
@@ -150,7 +151,7 @@ def test_replica_matches_the_estimator_thread_sample_by_sample(turns: SitlRecord
     assert init == 99 and run.horizon_used > 200
 
     queue = _WatchedQueue()
-    thread = EstimatorThread()
+    thread = EstimatorThread(task=VEHICLE["estimator"].task)
     thread.ctx = RuntimeContext(state=VehicleState(imu_stream=queue), home_lla=turns.home_lla)
     thread.ctx.params.declare_all(thread.param_specs())
     init_fix = turns.gps[max(k for k in turns.gps if k <= init)]

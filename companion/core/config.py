@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,16 +21,12 @@ class ConfigError(ValueError):
 
 @dataclass
 class DeviceConfig:
+    """One ``[devices.<name>]`` table. Which devices exist, and their defaults, is the vehicle
+    table's fact (`companion.vehicle`), handed to `load_config`: this module knows no device."""
+
     port: str = ""  # device path, pseudo-terminal, or any pyserial URL (loop://, socket://)
     baud: int = 115200
     enabled: bool = True
-
-
-@dataclass
-class DevicesConfig:
-    imu: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS0"))
-    gps: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS1"))
-    servo: DeviceConfig = field(default_factory=lambda: DeviceConfig("/dev/ttyS2"))
 
 
 @dataclass
@@ -90,7 +87,9 @@ class RerunConfig:
 @dataclass
 class Config:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    devices: DevicesConfig = field(default_factory=DevicesConfig)
+    devices: dict[str, DeviceConfig] = field(default_factory=dict)
+    """Keyed by device name; `companion.vehicle.fill_device_defaults` gives every device of
+    the vehicle its row's defaults."""
     logs: LogsConfig = field(default_factory=LogsConfig)
     params: ParamsConfig = field(default_factory=ParamsConfig)
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
@@ -101,9 +100,15 @@ class Config:
         return dataclasses.asdict(self)
 
 
-def load_config(path: Path | None) -> Config:
-    """Read a TOML file over the defaults; unknown keys and wrong types are errors, by name."""
+def load_config(path: Path | None, devices: Mapping[str, DeviceConfig] | None = None) -> Config:
+    """Read a TOML file over the defaults; unknown keys and wrong types are errors, by name.
+
+    `devices` are the vehicle's devices with their defaults (`VehicleTable.device_defaults`):
+    a ``[devices.<name>]`` table for another name is an error that lists them. None: the
+    devices are not checked here (the caller fills and checks them against its table)."""
     cfg = Config()
+    if devices is not None:
+        cfg.devices = {name: dataclasses.replace(d) for name, d in devices.items()}
     if path is None:
         return cfg
     try:
@@ -137,12 +142,31 @@ def _merge(obj: Any, data: dict[str, Any], where: str, prefix: str) -> None:
         if key not in fields:
             raise ConfigError(f"{where}: unknown setting '{dotted}' (known: {', '.join(fields)})")
         current = getattr(obj, key)
-        if dataclasses.is_dataclass(current):
+        if isinstance(current, dict):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: '{dotted}' must be a table")
+            _merge_tables(current, value, where, dotted + ".")
+        elif dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 raise ConfigError(f"{where}: '{dotted}' must be a table")
             _merge(current, value, where, dotted + ".")
         else:
             setattr(obj, key, _coerce(value, current, where, dotted))
+
+
+def _merge_tables(tables: dict[str, Any], data: dict[str, Any], where: str, prefix: str) -> None:
+    """``[devices.<name>]``: a name the vehicle has merges over its defaults; when the vehicle's
+    devices were not given (`tables` empty), any name starts from `DeviceConfig`'s defaults."""
+    checked = bool(tables)
+    for name, value in data.items():
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: '{prefix}{name}' must be a table")
+        if name not in tables:
+            if checked:
+                raise ConfigError(f"{where}: unknown device '{prefix}{name}' "
+                                  f"(known: {', '.join(tables)})")
+            tables[name] = DeviceConfig()
+        _merge(tables[name], value, where, f"{prefix}{name}.")
 
 
 def _coerce(value: Any, current: Any, where: str, dotted: str) -> Any:
@@ -181,45 +205,15 @@ def apply_override(cfg: Config, assignment: str) -> None:
     parts = dotted.strip().split(".")
     obj: Any = cfg
     for i, part in enumerate(parts):
+        if isinstance(obj, dict) and i < len(parts) - 1:
+            if part not in obj:
+                raise ConfigError(f"--set: unknown setting '{'.'.join(parts[: i + 1])}' "
+                                  f"(known: {', '.join(obj)})")
+            obj = obj[part]
+            continue
         if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
             raise ConfigError(f"--set: unknown setting '{'.'.join(parts[: i + 1])}'")
         if i == len(parts) - 1:
             setattr(obj, part, _coerce(value, getattr(obj, part), "--set", dotted))
         else:
             obj = getattr(obj, part)
-
-
-EXAMPLE_TOML = """\
-# companion configuration (all keys optional; these are the defaults)
-[vehicle]
-id = 1
-
-[devices.imu]
-port = "/dev/ttyS0"
-baud = 115200
-
-[devices.gps]
-port = "/dev/ttyS1"
-baud = 115200
-
-[devices.servo]
-port = "/dev/ttyS2"
-baud = 115200
-
-[logs]
-dir = "flights"
-
-[params]
-file = "params.parm"
-
-[mavlink]
-endpoints = ["udpout:127.0.0.1:14550"]
-key_file = ""
-allow_unsigned_reads = true
-
-[legacy]
-dest = "255.255.255.255:5501"
-listen = 5500
-bind = "0.0.0.0"
-allow = ["127.0.0.0/8"]
-"""

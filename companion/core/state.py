@@ -8,7 +8,9 @@ happens only in the bridge.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
+from typing import Any
 
 from companion.core.fastinit import fast_frozen
 from companion.core.logged import logged
@@ -78,7 +80,11 @@ class GpsFix:
 @fast_frozen
 @dataclass(frozen=True)
 class ServoState:
-    """One servo-board exchange: what the pilot commanded and what the computer sent."""
+    """One servo-board exchange: what the pilot commanded and what the computer sent.
+
+    The pulse widths are the exchange's record (logged, and sent as MAVLink's RC_CHANNELS and
+    SERVO_OUTPUT_RAW, whose unit they are); what the flight reads of the pilot is normalised by
+    the driver (`pilot_auto_switch`, `pilot_throttle`), so no reader decodes microseconds."""
 
     t_ns: int
     seq: int
@@ -89,6 +95,10 @@ class ServoState:
     failsafe: bool
     avionics_batt_raw: int
     servo_batt_raw: int
+    pilot_auto_switch: bool = False
+    """The pilot's mode switch selects automatic mode (what the control law engages on)."""
+    pilot_throttle: float = 0.0
+    """The pilot's throttle stick, 0..1."""
 
 
 @fast_frozen
@@ -153,3 +163,21 @@ class VehicleState:
     estimator: WaitableSlot[EstimatorState] = field(default_factory=WaitableSlot)
     control: DataSlot[ControlOutput] = field(default_factory=DataSlot)
     horizon: DataSlot[HorizonMeasurement] = field(default_factory=DataSlot)
+    named: dict[str, WaitableSlot[Any]] = field(default_factory=dict, repr=False)
+    """Slots of kinds of data the fields above do not have (a plug-in source's airspeed, a
+    barometer), by name: see `slot`."""
+    _named_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def slot(self, name: str) -> WaitableSlot[Any]:
+        """The slot `name`: a field above when there is one (``imu``, ``gps``...), else a named
+        slot created on first use, so a new source publishes a new kind of data without a
+        field here. Producer and readers agree on the name (the source's row lists it in
+        ``publishes``)."""
+        own = getattr(self, name, None) if not name.startswith("_") else None
+        if isinstance(own, DataSlot):
+            return own  # type: ignore[return-value]
+        with self._named_lock:
+            slot = self.named.get(name)
+            if slot is None:
+                slot = self.named[name] = WaitableSlot()
+            return slot

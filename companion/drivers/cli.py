@@ -1,4 +1,7 @@
-"""`companion drivers replay imu|gps|servo FILE`: decode a capture with the real driver."""
+"""`companion drivers replay DEVICE FILE`: decode a capture with the real driver.
+
+A command of the tools layer (it reads the vehicle's table for the device names).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from companion.drivers.registry import DEVICES
+from companion.vehicle import VEHICLE
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -35,7 +38,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="feed a raw device capture through the real driver")
-    p.add_argument("kind", choices=list(DEVICES))
+    p.add_argument("kind", choices=[row.name for row in VEHICLE.devices()])
     p.add_argument("file", type=Path, help="raw bytes as the device sent them")
     p.add_argument("--json", action="store_true", help="print the counter summary as JSON too")
     p.set_defaults(func=cmd_replay)

@@ -17,7 +17,6 @@ from companion.core.state import GpsFix
 from companion.drivers.gps_protocol import GpsSolution, NmeaDecoder
 from companion.drivers.serial_device import SerialDevice
 from companion.logs.layout import RecordLayout
-from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.task import Task
 
 FMT_SOLUTION = 1
@@ -53,7 +52,7 @@ class GpsDriver(SerialDevice):
 
     raw_format = FMT_RAW
 
-    def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["gps"]) -> None:
+    def __init__(self, url: str, baudrate: int = 115200, *, task: Task) -> None:
         super().__init__(task, url=url, baudrate=baudrate, read_timeout_s=0.02)
         self.decoder = self._new_decoder(allow_no_checksum=False, idle_ms=20)
         self._last_utc_s: float | None = None

@@ -8,7 +8,6 @@ from typing import Any
 from companion.core.state import ImuSample, ImuSlowSample
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
-from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.task import Task
 
 FMT_FAST = 1
@@ -21,7 +20,7 @@ class ImuDriver(SerialDevice):
 
     raw_format = FMT_RAW
 
-    def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["imu"]) -> None:
+    def __init__(self, url: str, baudrate: int = 115200, *, task: Task) -> None:
         super().__init__(task, url=url, baudrate=baudrate)
         self.decoder = ImuDecoder()
         self._last_fast: tuple[object, ...] | None = None

@@ -3,6 +3,9 @@
 This is how a user checks a new receiver against the driver before it flies, and how tests run
 recorded captures: the bytes go through the same port handling, decoder, counters and thread
 lifecycle as in flight, not through a shortcut into the decoder.
+
+A tool, not part of the flight: it builds a driver from the vehicle's table (the app layer), so
+it sits in the tools layer of docs/architecture.md although it lives beside the drivers.
 """
 
 from __future__ import annotations
@@ -17,15 +20,16 @@ from collections.abc import Callable
 from typing import Any
 
 from companion.core.clock import Clock
+from companion.core.config import DeviceConfig
 from companion.core.params import ParamRegistry
-from companion.drivers import registry
 from companion.drivers.gps_protocol import GpsSolution
 from companion.drivers.imu_protocol import ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
 from companion.drivers.servo_protocol import PilotFrame
+from companion.vehicle import VEHICLE
 from companion.watchdog import RuntimeContext, ThreadManager
 
-KINDS = tuple(registry.DEVICES)
+KINDS = tuple(row.name for row in VEHICLE.devices())
 
 
 def item_to_json(item: object) -> dict[str, Any]:
@@ -48,7 +52,11 @@ def item_to_json(item: object) -> dict[str, Any]:
 
 
 def make_driver(kind: str, url: str) -> SerialDevice:
-    drv = registry.make_driver(kind, url)
+    """The driver of device `kind` (a row of the vehicle table) on `url`, set to replay."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown device {kind!r} (known: {', '.join(KINDS)})")
+    drv = VEHICLE[kind].build(DeviceConfig(port=url))
+    assert isinstance(drv, SerialDevice)
     drv.prepare_for_replay()
     return drv
 

@@ -19,10 +19,11 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 import serial
 
+from companion.core.config import DeviceConfig
 from companion.core.params import ParamSpec, int_param
 from companion.core.serialport import OPEN_ERRORS, open_serial_port
 from companion.watchdog.thread import ManagedThread, Task
@@ -77,6 +78,15 @@ class SerialDevice(ManagedThread):
         #: Called with every decoded item (replay tools, tests); None in flight.
         self.item_sink: Callable[[object], None] | None = None
         self.log_raw = self.raw_format is not None
+
+    @classmethod
+    def from_row(cls, task: Task, settings: DeviceConfig | None) -> Self:
+        """The driver of `task` on the port its ``[devices.<name>]`` settings name. Every device
+        class is built as ``cls(url, baudrate, *, task)`` (the base takes its row first)."""
+        if settings is None:
+            raise ValueError(f"device {task.name}: no port configured")
+        make: Callable[..., Self] = cls
+        return make(settings.port, settings.baud, task=task)
 
     # ---------------------------------------------------------------- what a driver supplies
     @classmethod

@@ -13,14 +13,16 @@ from companion.core.params import ParamSpec, int_param
 from companion.core.state import ControlOutput, ServoState
 from companion.drivers.serial_device import SerialDevice
 from companion.drivers.servo_protocol import (
+    CH_THROTTLE,
     CHANNELS,
     PilotDecoder,
     PilotFrame,
     ServoCommand,
     encode_command,
+    pilot_switch_auto,
     surfaces_to_channels,
+    us_to_throttle,
 )
-from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.task import Task
 
 FMT_EXCHANGE = 1
@@ -39,7 +41,7 @@ class ServoDriver(SerialDevice):
     """Writes the command, then reads the pilot's answer: a timer thread, not a paced reader,
     so it overrides `step` and publishes each answer through `publish`."""
 
-    def __init__(self, url: str, baudrate: int = 115200, *, task: Task = VEHICLE_TASKS["servo"]) -> None:
+    def __init__(self, url: str, baudrate: int = 115200, *, task: Task) -> None:
         super().__init__(task, url=url, baudrate=baudrate, read_timeout_s=0.005)
         self.decoder = PilotDecoder()
         self.seq = 0
@@ -118,7 +120,8 @@ class ServoDriver(SerialDevice):
         cmd: ServoCommand = item[1]
         self.ctx.state.servo.write(ServoState(
             t_ns, cmd.seq, answer.channels_us, cmd.channels_us, cmd.auto_requested,
-            answer.auto_engaged, answer.failsafe, answer.avionics_batt_raw, answer.servo_batt_raw))
+            answer.auto_engaged, answer.failsafe, answer.avionics_batt_raw, answer.servo_batt_raw,
+            pilot_switch_auto(answer.channels_us), us_to_throttle(answer.channels_us[CH_THROTTLE])))
         if self.tlog is not None:
             self.tlog.log(FMT_EXCHANGE, *answer.channels_us, *cmd.channels_us, cmd.seq,
                           int(cmd.auto_requested), int(answer.auto_engaged), int(answer.failsafe),

@@ -29,7 +29,6 @@ import numpy as np
 
 from companion.core.params import ParamError, ParamSpec, float_param, int_param
 from companion.core.state import EstimatorState, ImuSample
-from companion.tasks import VEHICLE_TASKS
 from companion.watchdog.thread import ManagedThread, Task
 
 if TYPE_CHECKING:
@@ -80,19 +79,18 @@ temperature coefficient with their 1-sigma, so ``companion estimation calibratio
 them to the next flight (companion.estimation.calibration)."""
 
 
-def estimator_param_defaults() -> dict[str, float]:
+def estimator_param_defaults(prefix: str = "EST") -> dict[str, float]:
     """The estimator thread's parameter defaults, by suffix (``GPS_LAG``, ``GYR_NSD``...).
 
     Read from the class's metadata (no thread is built), so evaluations and tools follow the
     thread's defaults instead of copying them.
     """
-    prefix = VEHICLE_TASKS["estimator"].param_prefix
     return {spec.name.removeprefix(prefix + "_"): float(spec.default)
             for spec in EstimatorThread.declare_params(prefix)}
 
 
 class EstimatorThread(ManagedThread):
-    def __init__(self, *, task: Task = VEHICLE_TASKS["estimator"]) -> None:
+    def __init__(self, *, task: Task) -> None:
         super().__init__(task)
         self.core: EstimatorCore | None = None
         self._std_index: list[int] = list(range(9))

@@ -10,12 +10,10 @@ is missing from this build only means no restoration for its log.
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Sequence
-from typing import Any
 
-from companion.drivers.registry import DEVICES
+from companion.core.config import DeviceConfig
 from companion.logs.records import (
     COMMENT,
     DEFINITION,
@@ -24,22 +22,15 @@ from companion.logs.records import (
     encode_comment,
     encode_definition,
 )
-from companion.tasks import VEHICLE_TASKS
+from companion.vehicle import VEHICLE, Row
 
 __all__ = ["PRODUCERS", "definition_records", "known_header"]
 
 log = logging.getLogger(__name__)
 
-#: log name -> (module, class, constructor positional arguments)
-def _producer(name: str, implementation: str) -> tuple[str, str, tuple[Any, ...]]:
-    module, _, cls_name = implementation.partition(":")
-    return module, cls_name, ("loop://",) if name in DEVICES else ()
-
-
-PRODUCERS: dict[str, tuple[str, str, tuple[Any, ...]]] = {
-    # every row of the vehicle's task table; a device's driver is built on a loopback port
-    row.name: _producer(row.name, row.implementation) for row in VEHICLE_TASKS.values()
-}
+PRODUCERS: dict[str, Row] = {row.name: row for row in VEHICLE}
+"""Log name -> the row of the vehicle's table whose thread writes it (a device's driver is
+built on a loopback port)."""
 
 
 class _Recorder:
@@ -57,13 +48,11 @@ class _Recorder:
 
 def known_header(name: str) -> bytes | None:
     """Format Comment and Definition records of log `name` as its thread writes them today."""
-    entry = PRODUCERS.get(name)
-    if entry is None:
+    row = PRODUCERS.get(name)
+    if row is None:
         return None
-    module, cls_name, args = entry
     try:
-        cls = getattr(importlib.import_module(module), cls_name)
-        producer = cls(*args)
+        producer = row.build(DeviceConfig(port="loop://") if row.device is not None else None)
         rec = _Recorder()
         producer.define_logs(rec)
     except Exception as exc:  # a producer that cannot be built just means no restoration

@@ -30,7 +30,9 @@ from companion.core.files import write_json_bounded
 from companion.core.lockstep import LockstepClock
 from companion.core.serialport import register_url_scheme
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+from companion.sim.plugins import simulated_devices
 from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
+from companion.vehicle import VEHICLE, VehicleTable, device_settings
 from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
@@ -148,8 +150,11 @@ def lockstep_problems(thread_faults: list[str], clock_steps: list[str]) -> list[
 
 def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
                  handle_signals: bool = True,
-                 on_runtime: Callable[[Runtime], None] | None = None) -> dict[str, Any]:
-    """Fly one simulated vehicle in lockstep; returns the run summary (as `run_sim`)."""
+                 on_runtime: Callable[[Runtime], None] | None = None,
+                 vehicle: VehicleTable = VEHICLE) -> dict[str, Any]:
+    """Fly one simulated vehicle in lockstep; returns the run summary (as `run_sim`).
+
+    `vehicle` is the table the runtime builds (a plug-in device's row brings its simulator)."""
     from companion.sim.world import DEVICES, World, WorldOptions, parse_fault, parse_vanish
 
     problems = lockstep_problems(sim.thread_faults, sim.clock_steps)
@@ -158,7 +163,8 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
     clock = LockstepClock()
     flight_dir = new_flight_dir(Path(cfg.logs.dir),
                                 suffix=f"-v{cfg.vehicle.id}" if cfg.vehicle.id != 1 else "")
-    ports = {dev: DevicePort(dev) for dev in DEVICES}
+    extra = simulated_devices(vehicle)
+    ports = {dev: DevicePort(dev) for dev in (*DEVICES, *extra)}
     world = World(WorldOptions(
         scenario=sim.scenario, seed=sim.seed, aircraft=sim.aircraft,
         wind_ned_m_s=tuple(sim.wind_ned_m_s), flight_dir=flight_dir,
@@ -169,7 +175,7 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
         imu_profile=getattr(sim, "imu_profile", None), gps_profile=getattr(sim, "gps_profile", None),
         turbulence=getattr(sim, "turbulence", None),
         auto_switch_s=sim.auto_switch_s, horizon_camera=getattr(sim, "horizon_camera", "off"),
-        level_calibration=getattr(sim, "level_calibration", True)),
+        level_calibration=getattr(sim, "level_calibration", True), extra_devices=extra),
         ports=ports, clock=clock)
     ports["servo"].on_driver_write = world.answer_servo
 
@@ -180,8 +186,14 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             raise serial.SerialException(f"{url}: no such device")
         return LockstepSerial(port, clock, timeout_s)
 
-    for dev in DEVICES:
-        getattr(cfg.devices, dev).port = ports[dev].name
+    for row in vehicle.devices():
+        settings = device_settings(cfg, row.name, vehicle)
+        if row.name in ports:
+            settings.port = ports[row.name].name
+        elif settings.enabled:
+            log.warning("device %s: nothing simulates it (its row names no simulator); it is "
+                        "switched off in this flight", row.name)
+            settings.enabled = False
     frame = world.model.frame
     cfg.vehicle.home = ",".join(repr(float(v)) for v in
                                 (frame.lat0_deg, frame.lon0_deg, frame.alt0_m))
@@ -196,7 +208,7 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
     try:
         rt = Runtime(cfg, RuntimeOptions(
             clock=clock, flight_dir=flight_dir, mavlink=False, legacy=False,
-            log_writer_thread=False,
+            log_writer_thread=False, vehicle=vehicle,
             extra_run_info={"simulation": {**vars(sim), "lockstep": True,
                                            "sensors": world.sensors.metadata()}},
             extra_bridges=[inject] if faults else []))

@@ -23,6 +23,7 @@ from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
 from companion.sim.clock_faults import WallClockSteps, parse_clock_step
 from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
+from companion.vehicle import VEHICLE, device_settings
 from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
@@ -195,9 +196,14 @@ def run_sim(cfg: Config, sim: SimOptions, duration_s: float | None,
         device_dir = Path(tmp)
         world = WorldProcess(sim, clock, device_dir, flight_dir, duration_s)
         try:
-            cfg.devices.imu.port = world.devices["imu"]
-            cfg.devices.gps.port = world.devices["gps"]
-            cfg.devices.servo.port = world.devices["servo"]
+            for row in VEHICLE.devices():  # every device the world simulates
+                settings = device_settings(cfg, row.name)
+                if row.name in world.devices:
+                    settings.port = world.devices[row.name]
+                elif settings.enabled:
+                    log.warning("device %s: nothing simulates it (its row names no "
+                                "simulator); it is switched off in this flight", row.name)
+                    settings.enabled = False
             cfg.vehicle.home = ",".join(repr(float(v)) for v in world.devices["home"])
             t0 = 0.0  # set at take-off, below
             first = True

@@ -52,6 +52,7 @@ from companion.sim.devices import (
     ServoBoardSim,
 )
 from companion.sim.flight import FlightModel, FlightModelError, TruthState
+from companion.sim.plugins import DeviceSimulator, build_simulator, simulated_devices
 from companion.sim.profiles import GPS_PROFILES, IMU_PROFILES, TURBULENCE, resolve_sensors
 from companion.sim.scenarios import Pilot, Surfaces, surfaces_from_channels
 
@@ -124,6 +125,9 @@ class WorldOptions:
     horizon_camera: str = "off"
     """`HORIZON_CAMERA_CHOICES`: no camera, or one whose frames are clean or disturbed as the
     thesis's radio video link disturbed them (light, thesis)."""
+    extra_devices: dict[str, str] = field(default_factory=dict)
+    """Devices the world does not simulate itself: name -> ``module:Class`` of the simulator
+    their row of the vehicle table names (`companion.sim.plugins`), in table order."""
     level_calibration: bool = True
     """Level-calibrate the installation before the flight, as a user does (`ImuSim.level_calibration`;
     profiles without a levelling error have none): the runtime gets the trims as parameters."""
@@ -215,9 +219,15 @@ class World:
         # drawn after every other stream, so a calibration changes no sensor's draws
         level_rng = np.random.default_rng(rng.integers(2**63))
         self.level_cal = self.imu.level_calibration(level_rng) if opts.level_calibration else None
+        # a plug-in device's generator comes after all of those: it changes no other draw
+        self.extra: dict[str, DeviceSimulator] = {
+            name: build_simulator(spec, np.random.default_rng(rng.integers(2**63)))
+            for name, spec in opts.extra_devices.items()}
+        self.device_names = (*DEVICES, *self.extra)
         if ports is None:
             opts.device_dir.mkdir(parents=True, exist_ok=True)
-            self.ptys: dict[str, Any] = {dev: Pty(opts.device_dir / dev) for dev in DEVICES}
+            self.ptys: dict[str, Any] = {dev: Pty(opts.device_dir / dev)
+                                         for dev in self.device_names}
         else:
             self.ptys = dict(ports)
         self._board_lock = threading.Lock()
@@ -485,6 +495,10 @@ class World:
         while self.gps_queue and self.gps_queue[0][0] <= self.t_s + 1e-9:
             _, data = self.gps_queue.pop(0)
             self.ptys["gps"].write(self._inject("gps", data))
+        for name, device in self.extra.items():
+            data = device.tick(self.t_s, truth)
+            if data:
+                self.ptys[name].write(self._inject(name, data))
         if self.tlog is not None and self.ticks % TRUTH_EVERY == 0:
             self.tlog.log(FMT_TRUTH, truth.roll_rad, truth.pitch_rad, truth.yaw_rad,
                           truth.north_m, truth.east_m, truth.down_m, truth.vn_m_s, truth.ve_m_s,
@@ -624,7 +638,7 @@ def main(argv: list[str] | None = None) -> int:
         gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
         imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
         auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera,
-        level_calibration=not args.no_level_cal)
+        level_calibration=not args.no_level_cal, extra_devices=simulated_devices())
     try:
         world = World(opts)
     except (FlightModelError, ValueError) as exc:
@@ -633,7 +647,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, lambda *_: world.stop())
     signal.signal(signal.SIGINT, lambda *_: world.stop())
     frame = world.model.frame
-    ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in DEVICES}
+    ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in world.device_names}
     ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
     ready["params"] = world.runtime_params()
     print("READY " + json.dumps(ready), flush=True)

@@ -5,7 +5,7 @@ are read in one place instead of inside each function. Here a row holds the same
 managed thread: its name and id, what paces it, its time budget, its watchdog and message periods,
 its OTP restart type, how long it may take to stop, and the prefix of its parameters. A thread
 class supplies behaviour; the row supplies the numbers. The vehicle's rows are in
-`companion.tasks`; a bridge declares its own rows next to its threads and adds them through
+`companion.vehicle` (the runtime hands each thread it builds its row); a bridge declares its own rows next to its threads and adds them through
 `ThreadManager.add`, which hands out the ids.
 
 The row also names the class that implements it, so its parameters' metadata (descriptions,
@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-import importlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from companion.core.lazy import load
 from companion.core.params import ParamSpec, int_param
 
 if TYPE_CHECKING:
@@ -70,6 +70,10 @@ class Task:
     with EXIT_ESCALATED so that its service manager restarts the whole process, as an OTP
     supervisor escalates to its parent (see MGR_ESCALATE). For the vehicle's own threads; never
     for a thread that the network feeds, or network input could restart the aircraft."""
+    publishes: tuple[str, ...] = ()
+    """The `VehicleState` slots the thread writes (``imu``, ``gps``, ``servo``...): how a bridge
+    knows what a thread stands for (the MAVLink health bits of SYS_STATUS) without a list of
+    thread ids of its own."""
     switchable: bool = True
     """False: `<PREFIX>_ENABLE` is read-only. For the threads that carry a ground link: a ground
     station (or anyone on an unsigned link) that switched them off would leave the aircraft
@@ -116,11 +120,10 @@ class Task:
         """The implementing class, imported on demand (the table itself imports nothing)."""
         if not self.implementation:
             raise LookupError(f"task {self.name} names no implementing class")
-        module, _, attr = self.implementation.partition(":")
         try:
-            cls: type[ManagedThread] = getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as exc:
-            raise LookupError(f"task {self.name}: cannot load {self.implementation}: {exc}") from exc
+            cls: type[ManagedThread] = load(self.implementation)
+        except LookupError as exc:
+            raise LookupError(f"task {self.name}: {exc}") from exc
         return cls
 
     def param_specs(self) -> list[ParamSpec]:

@@ -21,9 +21,10 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from companion.core.clock import Clock, Worker
+from companion.core.config import DeviceConfig
 from companion.core.osthread import set_native_name
 from companion.core.params import ParamRegistry, ParamSpec
 from companion.core.state import VehicleState
@@ -105,6 +106,13 @@ class ManagedThread:
     `outcome`, `release_worker` and `notify_params_changed`. Nothing else of a thread's
     insides is the manager's business.
     """
+
+    @classmethod
+    def from_row(cls, task: Task, settings: DeviceConfig | None) -> Self:
+        """The thread of `task`, a row of the vehicle's table, as the runtime builds it.
+        `settings` is the row's ``[devices.<name>]`` configuration (None for a thread that
+        takes none); a device class overrides this to open its port from them."""
+        return cls(task=task)
 
     def __init__(self, task: Task | str, **fields: Any) -> None:
         """`task` is the thread's row; a name plus keyword fields builds a row on the spot

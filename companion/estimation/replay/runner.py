@@ -174,12 +174,10 @@ class ReplayResult:
 def estimator_params(overrides: dict[str, float] | None = None) -> dict[str, float]:
     """The estimator thread's parameter defaults by suffix (read from its declaration, so a
     replay runs what flies), with `overrides` applied; unknown names are refused."""
-    from companion.estimation.thread import EstimatorThread
-    from companion.tasks import VEHICLE_TASKS
+    from companion.estimation.thread import estimator_param_defaults
 
-    prefix = VEHICLE_TASKS["estimator"].param_prefix
-    params = {spec.name.removeprefix(prefix + "_"): float(spec.default)
-              for spec in EstimatorThread.declare_params(prefix)}
+    prefix = "EST"
+    params = estimator_param_defaults(prefix)
     for name, value in (overrides or {}).items():
         key = name.upper().removeprefix(prefix + "_")
         if key not in params:

@@ -1,4 +1,5 @@
-"""The task table is the one place a thread's numbers live, and its metadata needs no build."""
+"""The vehicle's table is the one place a source's or thread's facts live: its numbers, its
+configuration, its ids on the wire and its simulator; a new device is one module and one row."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from companion.core.state import GpsFix
 from companion.drivers.serial_device import SerialDevice
 from companion.logs.layout import RecordLayout
 from companion.runtime import Runtime, RuntimeOptions, declared_registry, vehicle_tasks
-from companion.tasks import VEHICLE_TASKS
+from companion.vehicle import VEHICLE, Row, VehicleTable, device_settings
 from companion.watchdog import RuntimeContext, Task, ThreadManager
 from companion.watchdog.task import RestartType
 
@@ -51,8 +52,9 @@ def test_every_thread_is_built_from_its_row() -> None:
     assert [r.name for r in rows] == ["imu", "gps", "servo", "estimator", "control"]
     assert [r.thread_id for r in rows] == [1, 2, 3, 4, 5]
     for row in rows:
-        cls = row.thread_class()
-        thread = cls("loop://") if issubclass(cls, SerialDevice) else cls()
+        thread = VEHICLE[row.name].build(Config().devices.get(row.name))
+        if isinstance(thread, SerialDevice):
+            assert thread.url == VEHICLE[row.name].device.port  # type: ignore[union-attr]
         assert thread.task is row
         assert (thread.name, thread.thread_id, thread.period_ms, thread.budget_ms,
                 thread.param_prefix, thread.restart, thread.max_catch_up,
@@ -63,12 +65,12 @@ def test_every_thread_is_built_from_its_row() -> None:
         assert {f"{row.param_prefix}_WDG_MS", f"{row.param_prefix}_ENABLE"} <= names
         wdg = next(s for s in thread.param_specs() if s.name.endswith("_WDG_MS"))
         assert wdg.default == row.watchdog_ms
-    assert VEHICLE_TASKS["servo"].period_ms == 20.0 and VEHICLE_TASKS["servo"].max_catch_up == 3
+    assert VEHICLE["servo"].task.period_ms == 20.0 and VEHICLE["servo"].task.max_catch_up == 3
 
 
 def test_switching_off_a_device_or_the_estimator_removes_its_row() -> None:
     cfg = Config()
-    cfg.devices.gps.enabled = False
+    device_settings(cfg, "gps").enabled = False
     names = [r.name for r in vehicle_tasks(cfg, RuntimeOptions(estimator=False))]
     assert names == ["imu", "servo", "control"]
 
@@ -86,7 +88,7 @@ def test_a_row_checks_itself_and_derives_its_prefix() -> None:
     assert Task("a").effective_budget_ms == 10.0
     with pytest.raises(ValueError, match="period_ms"):
         Task("a", period_ms=0.0)
-    renamed = VEHICLE_TASKS["imu"].replace(name="imu2", thread_id=0)
+    renamed = VEHICLE["imu"].task.replace(name="imu2", thread_id=0)
     assert renamed.param_prefix == "IMU2" and renamed.budget_ms == 2.0
 
 
@@ -94,7 +96,7 @@ def test_bridge_rows_get_their_ids_from_the_manager() -> None:
     from companion.watchdog.manager import FIRST_ASSIGNED_ID
     from companion.watchdog.thread import ManagedThread
 
-    mgr = ThreadManager(RuntimeContext(), [ManagedThread(VEHICLE_TASKS["control"])])
+    mgr = ThreadManager(RuntimeContext(), [ManagedThread(VEHICLE["control"].task)])
     a = ManagedThread(Task("alpha", restart=RestartType.TEMPORARY))
     b = ManagedThread(Task("beta"))
     mgr.add(a)
@@ -105,7 +107,7 @@ def test_bridge_rows_get_their_ids_from_the_manager() -> None:
 
 def test_architecture_doc_lists_every_row_with_its_numbers() -> None:
     text = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
-    for row in VEHICLE_TASKS.values():
+    for row in (r.task for r in VEHICLE):
         line = next((ln for ln in text.splitlines() if ln.startswith(f"| {row.name} |")), None)
         assert line is not None, f"docs/architecture.md: no task-table row for {row.name}"
         cells = [c.strip() for c in line.strip("|").split("|")]
@@ -201,3 +203,90 @@ def test_a_start_refused_by_a_bad_key_file_leaves_no_empty_flight_directory(
     with pytest.raises(KeyFileError, match="chmod 600"):
         Runtime(cfg, RuntimeOptions())
     assert not any((tmp_path / "flights").iterdir())
+
+
+# ------------------------------------------------------------------ the table's own facts
+def test_the_legacy_wire_ids_are_the_tables_ids() -> None:
+    """The legacy protocol's contract names the thesis aircraft's sources 1..5; the table is
+    where those ids live, and the codec's enum is the contract's copy of them."""
+    from legacy_protocol.codec import ThreadId
+
+    assert {t.name.lower(): int(t) for t in ThreadId} == {
+        row.name: row.task.thread_id for row in VEHICLE}
+
+
+def test_every_published_slot_is_a_slot_of_the_vehicle_state() -> None:
+    from companion.core.state import VehicleState
+    from companion.core.sync import DataSlot
+
+    state = VehicleState()
+    for row in VEHICLE:
+        assert row.task.publishes, f"{row.name} publishes nothing"
+        for name in row.task.publishes:
+            assert isinstance(getattr(state, name, None), DataSlot), (row.name, name)
+    # a kind of data the state has no field for gets a named slot, the same one every time
+    assert state.slot("airspeed") is state.slot("airspeed") and "airspeed" in state.named
+    assert state.slot("gps") is state.gps
+
+
+def test_a_table_refuses_a_name_or_id_twice_and_a_new_row_takes_the_next_id() -> None:
+    imu = VEHICLE["imu"]
+    with pytest.raises(ValueError, match="name appears twice"):
+        VehicleTable((imu, imu))
+    with pytest.raises(ValueError, match="thread id appears twice"):
+        VehicleTable((imu, Row(imu.task.replace(name="imu2"), "a second IMU")))
+    extended = VEHICLE.with_rows([Row(Task("baro"), "a barometer")])
+    assert extended["baro"].task.thread_id == 6 and len(VEHICLE) == 5
+    with pytest.raises(KeyError, match="no row 'pitot'.*imu, gps, servo, estimator, control"):
+        VEHICLE["pitot"]
+
+
+def _fly_lockstep(tmp: Path, vehicle: VehicleTable) -> tuple[dict[str, Any], Path]:
+    from companion.sim.lockstep import run_lockstep
+    from companion.sim.runner import SimOptions
+
+    cfg = Config()
+    cfg.logs.dir = str(tmp / "flights")
+    cfg.params.file = str(tmp / "params.parm")
+    sim = SimOptions(scenario="turns", seed=11, imu_profile="simple", gps_profile="simple",
+                     turbulence="none")
+    summary = run_lockstep(cfg, sim, 20.0, handle_signals=False, vehicle=vehicle)
+    return summary, Path(summary["flight_dir"])
+
+
+def test_a_device_added_as_one_module_and_one_row_flies_in_lockstep(tmp_path: Path) -> None:
+    """`tests/plugin_airspeed.py` holds a whole new device (wire format, driver, simulator) and
+    its row; the table extended with that row flies it: its thread runs at its rate, its log
+    is written, its slot carries the true airspeed, and no other sensor's bytes change."""
+    import numpy as np
+    from plugin_airspeed import NOISE_M_S, ROW
+
+    from companion.logs.reader import read_log
+
+    summary, fdir = _fly_lockstep(tmp_path / "with", VEHICLE.with_rows([ROW]))
+    threads = {t["name"]: t for t in summary["threads"]}
+    assert set(threads) == {"imu", "gps", "servo", "estimator", "control", "airspeed"}
+    aspd = threads["airspeed"]
+    assert aspd["restarts"] == 0 and aspd["stalls"] == 0, aspd
+    assert aspd["rate_hz"] == pytest.approx(10.0, rel=0.02), aspd
+    assert aspd["counters"]["bad_lines"] == 0, aspd
+    run = __import__("json").loads((fdir / "run.json").read_text())
+    assert run["config"]["devices"]["airspeed"]["port"].startswith("lockstep://")
+    assert {"name": "airspeed", "id": 6} in run["threads"]
+    measured = read_log(fdir / "airspeed.bin").data(1)
+    truth = read_log(fdir / "truth.bin").data(1)
+    assert len(measured["time_s"]) >= 190  # 10 Hz for 20 s
+    true_at = np.interp(measured["time_s"], truth["time_s"], truth["airspeed_m_s"])
+    err = measured["airspeed_m_s"] - true_at
+    assert float(np.std(err)) < 3 * NOISE_M_S and abs(float(np.mean(err))) < NOISE_M_S
+    assert float(np.mean(true_at)) > 20.0  # it flew
+    # the same flight without the device: every record the flights share is the same, bit for
+    # bit, times included (the device's generator is drawn after every other sensor's); the
+    # flight with one more thread to start ends a few ticks later on the simulated clock
+    _, plain = _fly_lockstep(tmp_path / "without", VEHICLE)
+    assert not (plain / "airspeed.bin").exists()
+    for name in ("truth.bin", "imu.bin", "gps.bin", "servo.bin", "estimator.bin", "control.bin"):
+        ours, theirs = read_log(fdir / name).data(1), read_log(plain / name).data(1)
+        n = min(len(ours), len(theirs))
+        assert n > 0.98 * max(len(ours), len(theirs)), (name, len(ours), len(theirs))
+        assert ours[:n].tobytes() == theirs[:n].tobytes(), name
