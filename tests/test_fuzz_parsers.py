@@ -46,13 +46,9 @@ from companion.core.params import (
     int_param,
     parse_param_file,
 )
-from companion.drivers.gps_protocol import (
-    MAX_LINE_CHARS,
-    GpsSolution,
-    NmeaDecoder,
-    encode_epoch,
-    nmea_sentence,
-)
+from companion.drivers.gps_encoder import encode_epoch
+from companion.drivers.gps_protocol import MAX_LINE_CHARS, NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import (
     FAST_FRAME_LEN,
     SYNC,
@@ -63,6 +59,7 @@ from companion.drivers.imu_protocol import (
     decode_fast_frame,
     encode_fast_frame,
 )
+from companion.drivers.nmea_fields import nmea_sentence
 from companion.drivers.servo_protocol import (
     COMMAND_LEN,
     COMMAND_SYNC,
