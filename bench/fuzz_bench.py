@@ -319,7 +319,7 @@ def _legacy_target(tm: ModuleType) -> Target:
         fleet(datagrams=x)
 
     del codec
-    return Target("legacy-udp", ["legacy_protocol/codec.py"],
+    return Target("legacy-udp", ["legacy_protocol/codec.py", "legacy_protocol/messages.py"],
                   st.lists(st.tuples(datagram, source), min_size=1, max_size=6), run,
                   note="codec.decode/encode, then monitor Fleet.apply")
 
@@ -705,7 +705,8 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
 
 ALL_MODULES = [
     "companion/drivers/imu_protocol.py", "companion/drivers/servo_protocol.py",
-    *GPS_MODULES, "legacy_protocol/codec.py", "companion/logs/reader.py",
+    *GPS_MODULES, "legacy_protocol/codec.py", "legacy_protocol/messages.py",
+    "companion/logs/reader.py",
     "companion/core/config.py", "companion/core/params.py", "gcs_bridge/dispatch.py",
     "gcs_bridge/services.py", "gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py",
     "gcs_bridge/commands.py", "gcs_bridge/ftp.py", "gcs_bridge/logserver.py",

@@ -38,7 +38,7 @@ from textual.widgets import (
     TabPane,
 )
 
-from legacy_protocol.codec import (
+from legacy_protocol.messages import (
     UNCHANGED,
     Command,
     Control,
