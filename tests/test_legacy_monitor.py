@@ -39,8 +39,9 @@ from legacy_protocol.messages import (
     Stop,
     ThreadStatus,
 )
-from legacy_protocol.monitor_app import ConfirmScreen, Led, MonitorApp
+from legacy_protocol.monitor_app import MonitorApp
 from legacy_protocol.monitor_link import CommandSender, LinkError, MonitorLink
+from legacy_protocol.monitor_widgets import ConfirmScreen, Led
 
 REPO = Path(__file__).resolve().parents[1]
 WAIT_S = 5.0
