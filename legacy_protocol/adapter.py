@@ -18,8 +18,8 @@ by a quarter of the thread's own watchdog period (converted to host seconds), so
 sees several completed cycles in each of its windows at any simulation speed: a wait that is
 fixed in host time would outlast a window at 20x (a 2000 ms window is 100 ms of host time).
 
-Size: the socket, the two threads that share it, the commands they apply and the data messages
-they build are one protocol's aircraft side, read together; the wire format is in `codec`.
+The messages built from the runtime's state are in `telemetry`, the wire format in `messages`
+and `codec`; this module owns the socket, the two threads and the commands they apply.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, Task, ThreadManager
 from legacy_protocol import codec, messages
 from legacy_protocol.messages import AckResult, MsgType
+from legacy_protocol.telemetry import DATA_MESSAGES, thread_status
 
 log = logging.getLogger(__name__)
 
@@ -413,7 +414,7 @@ class LegacyAdapter:
         threads = self.manager.threads
         if threads and self._due("thread_status", int(params.get("MGR_STATUS_MS")), now):
             self._status_index %= len(threads)
-            self._send(self.thread_status(threads[self._status_index]))
+            self._send(thread_status(threads[self._status_index]))
             self._status_index += 1
         if self._due("manager_status", int(params.get("MGR_MSTAT_MS")), now):
             st = self.manager.status()
@@ -431,29 +432,10 @@ class LegacyAdapter:
             if builder is None or not t.enabled:
                 continue
             if self._due(t.name, t.message_ms, now):
-                msg = builder(self, t)
+                msg = builder(self.ctx, t)
                 if msg is not None:
                     self._send(msg)
         return self._soonest_ns - now
-
-    @staticmethod
-    def thread_status(t: ManagedThread) -> messages.ThreadStatus:
-        s = t.status()
-        flags = (
-            (messages.ThreadFlag.INITIALISED if s.initialised else 0)
-            | (messages.ThreadFlag.RUNNING if s.running else 0)
-            | (messages.ThreadFlag.IN_PERIODIC if s.in_periodic else 0)
-            | (messages.ThreadFlag.ALIVE if s.alive else 0)
-        )
-        return messages.ThreadStatus(
-            s.thread_id,
-            int(flags),
-            min(s.restarts, 0xFFFF),
-            min(int(s.mean_step_us), 0xFFFFFFFF),
-            s.watchdog_ms,
-            s.message_ms,
-            s.name[:16],
-        )
 
     def stats(self) -> list[dict[str, Any]]:
         """Per-link figures, one entry (the same shape as the MAVLink bridge's list)."""
@@ -465,83 +447,3 @@ class LegacyAdapter:
             self.sock.close()
         except OSError:
             pass
-
-
-def _f(x: float | None) -> float:
-    return math.nan if x is None else float(x)
-
-
-def _imu(adapter: LegacyAdapter, t: ManagedThread) -> messages.Imu | None:
-    s = adapter.ctx.state.imu.read()
-    if s is None:
-        return None
-    slow = adapter.ctx.state.imu_slow.read()
-    return messages.Imu(
-        *s.rates_rad_s,
-        *s.accel_m_s2,
-        slow.temperature_c if slow is not None else math.nan,
-        t.cycles & 0xFFFFFFFF,
-    )
-
-
-def _gps(adapter: LegacyAdapter, t: ManagedThread) -> messages.Gps | None:
-    g = adapter.ctx.state.gps.read()
-    if g is None:
-        return None
-    return messages.Gps(
-        _f(g.lat_deg),
-        _f(g.lon_deg),
-        _f(g.alt_m),
-        _f(g.vn_m_s),
-        _f(g.ve_m_s),
-        _f(g.vd_m_s),
-        _f(g.pdop),
-        _f(g.hdop),
-        _f(g.vdop),
-        _f(g.tdop),
-        _f(None if g.latency_s is None else g.latency_s * 1e3),
-        _f(g.alt_std_m),
-        max(0, min(3, g.fix)),
-        min(g.sats or 0, 255),
-    )
-
-
-def _servo(adapter: LegacyAdapter, t: ManagedThread) -> messages.Servo | None:
-    s = adapter.ctx.state.servo.read()
-    if s is None:
-        return None
-    flags = (messages.ServoFlag.AUTOMATIC if s.auto_engaged else 0) | (
-        messages.ServoFlag.FAILSAFE if s.failsafe else 0
-    )
-    return messages.Servo(
-        tuple(s.pilot_us[:8]),
-        tuple(s.computer_us[:8]),
-        s.avionics_batt_raw,
-        s.servo_batt_raw,
-        int(flags),
-    )
-
-
-def _estimator(adapter: LegacyAdapter, t: ManagedThread) -> messages.Estimator | None:
-    e = adapter.ctx.state.estimator.read()
-    if e is None:
-        return None
-    return messages.Estimator(
-        e.roll_rad, e.pitch_rad, e.yaw_rad, *e.pos_ned_m, *e.vel_ned_m_s, *e.gyro_bias_rad_s
-    )
-
-
-def _control(adapter: LegacyAdapter, t: ManagedThread) -> messages.Control | None:
-    c = adapter.ctx.state.control.read()
-    if c is None:
-        return None
-    return messages.Control(c.aileron, c.elevator, c.rudder, c.throttle, int(c.enabled))
-
-
-DATA_MESSAGES = {
-    "imu": _imu,
-    "gps": _gps,
-    "servo": _servo,
-    "estimator": _estimator,
-    "control": _control,
-}
