@@ -18,8 +18,8 @@ by a quarter of the thread's own watchdog period (converted to host seconds), so
 sees several completed cycles in each of its windows at any simulation speed: a wait that is
 fixed in host time would outlast a window at 20x (a 2000 ms window is 100 ms of host time).
 
-Size: the socket, the two threads that share it, the commands they apply and the data messages
-they build are one protocol's aircraft side, read together; the wire format is in `codec`.
+The messages built from the runtime's state are in `telemetry`, the wire format in `messages`
+and `codec`; this module owns the socket, the two threads and the commands they apply.
 """
 
 from __future__ import annotations
@@ -39,8 +39,9 @@ from companion.core.params import ParamError, ParamSpec
 from companion.core.state import HorizonMeasurement
 from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, ManagerCommand, RuntimeContext, Task, ThreadManager
-from legacy_protocol import codec
-from legacy_protocol.codec import AckResult, MsgType
+from legacy_protocol import codec, messages
+from legacy_protocol.messages import AckResult, MsgType
+from legacy_protocol.telemetry import DATA_MESSAGES, thread_status
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +186,7 @@ class LegacyAdapter:
     ) -> None:
         self.ctx = ctx
         self.manager = manager
-        self.dest = parse_hostport(dest, codec.DEFAULT_MONITOR_PORT)
+        self.dest = parse_hostport(dest, messages.DEFAULT_MONITOR_PORT)
         self.allow = [ipaddress.ip_network(a, strict=False) for a in allow]
         self.counters = LegacyCounters()
         self.queues: dict[int, MessageQueue[PendingCommand]] = {
@@ -198,7 +199,7 @@ class LegacyAdapter:
             )
         }
         # None: no acknowledgement, only a wake-up of the sender (see `_Tx.interrupt_io`)
-        self.acks: MessageQueue[tuple[codec.CommandAck, tuple[str, int]] | None] = (
+        self.acks: MessageQueue[tuple[messages.CommandAck, tuple[str, int]] | None] = (
             MessageQueue(256))
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
@@ -277,7 +278,7 @@ class LegacyAdapter:
             return
         t = result.header.type_code
         pending = PendingCommand(result.payload, result.header.seq, addr)
-        if isinstance(result.payload, codec.HorizonAttitude):
+        if isinstance(result.payload, messages.HorizonAttitude):
             p = result.payload
             if not all(math.isfinite(v) for v in (p.roll_rad, p.pitch_rad, p.quality)):
                 self._ack(pending, AckResult.BAD_VALUE)
@@ -302,7 +303,7 @@ class LegacyAdapter:
         self.manager.wake()
 
     def _ack(self, cmd: PendingCommand, result: AckResult) -> None:
-        ack = codec.CommandAck(
+        ack = messages.CommandAck(
             command_type=int(cmd.payload.TYPE), result=int(result), command_seq=cmd.seq
         )
         self.acks.put((ack, cmd.addr))
@@ -320,31 +321,31 @@ class LegacyAdapter:
 
     def _apply(self, cmd: PendingCommand) -> None:
         p = cmd.payload
-        if isinstance(p, codec.SetThreadParams):
+        if isinstance(p, messages.SetThreadParams):
             t = self.manager.find(p.thread_id)
             if t is None:
                 self._ack(cmd, AckResult.UNKNOWN_THREAD)
                 return
             changes = {}
-            if p.watchdog_period_ms != codec.UNCHANGED:
+            if p.watchdog_period_ms != messages.UNCHANGED:
                 changes[f"{t.param_prefix}_WDG_MS"] = p.watchdog_period_ms
-            if p.message_period_ms != codec.UNCHANGED:
+            if p.message_period_ms != messages.UNCHANGED:
                 changes[f"{t.param_prefix}_MSG_MS"] = p.message_period_ms
             self._set_all(cmd, changes)
-        elif isinstance(p, codec.SetManagerParams):
+        elif isinstance(p, messages.SetManagerParams):
             changes = {}
-            if p.execution_time_s != codec.UNCHANGED:
+            if p.execution_time_s != messages.UNCHANGED:
                 changes["MGR_EXEC_TIME_S"] = p.execution_time_s
-            if p.status_period_ms != codec.UNCHANGED:
+            if p.status_period_ms != messages.UNCHANGED:
                 changes["MGR_STATUS_MS"] = p.status_period_ms
-            if p.granularity_ms != codec.UNCHANGED:
+            if p.granularity_ms != messages.UNCHANGED:
                 changes["MGR_WDG_GRAN_MS"] = p.granularity_ms
             self._set_all(cmd, changes)
-        elif isinstance(p, codec.Stop):
+        elif isinstance(p, messages.Stop):
             self._ack(cmd, AckResult.ACCEPTED)
             self.send_due(force_acks_only=True)
             self.manager.post(ManagerCommand("stop", reason=p.reason))
-        elif isinstance(p, codec.RestartThread):
+        elif isinstance(p, messages.RestartThread):
             if self.manager.find(p.thread_id) is None:
                 self._ack(cmd, AckResult.UNKNOWN_THREAD)
                 return
@@ -396,7 +397,7 @@ class LegacyAdapter:
         self._soonest_ns = min(self._soonest_ns, due)
         return True
 
-    def send_ack(self, item: tuple[codec.CommandAck, tuple[str, int]] | None) -> None:
+    def send_ack(self, item: tuple[messages.CommandAck, tuple[str, int]] | None) -> None:
         if item is not None:
             self._send(item[0], item[1])
 
@@ -413,12 +414,12 @@ class LegacyAdapter:
         threads = self.manager.threads
         if threads and self._due("thread_status", int(params.get("MGR_STATUS_MS")), now):
             self._status_index %= len(threads)
-            self._send(self.thread_status(threads[self._status_index]))
+            self._send(thread_status(threads[self._status_index]))
             self._status_index += 1
         if self._due("manager_status", int(params.get("MGR_MSTAT_MS")), now):
             st = self.manager.status()
             self._send(
-                codec.ManagerStatus(
+                messages.ManagerStatus(
                     st.elapsed_ms,
                     st.exec_time_s,
                     st.status_ms,
@@ -431,29 +432,10 @@ class LegacyAdapter:
             if builder is None or not t.enabled:
                 continue
             if self._due(t.name, t.message_ms, now):
-                msg = builder(self, t)
+                msg = builder(self.ctx, t)
                 if msg is not None:
                     self._send(msg)
         return self._soonest_ns - now
-
-    @staticmethod
-    def thread_status(t: ManagedThread) -> codec.ThreadStatus:
-        s = t.status()
-        flags = (
-            (codec.ThreadFlag.INITIALISED if s.initialised else 0)
-            | (codec.ThreadFlag.RUNNING if s.running else 0)
-            | (codec.ThreadFlag.IN_PERIODIC if s.in_periodic else 0)
-            | (codec.ThreadFlag.ALIVE if s.alive else 0)
-        )
-        return codec.ThreadStatus(
-            s.thread_id,
-            int(flags),
-            min(s.restarts, 0xFFFF),
-            min(int(s.mean_step_us), 0xFFFFFFFF),
-            s.watchdog_ms,
-            s.message_ms,
-            s.name[:16],
-        )
 
     def stats(self) -> list[dict[str, Any]]:
         """Per-link figures, one entry (the same shape as the MAVLink bridge's list)."""
@@ -465,83 +447,3 @@ class LegacyAdapter:
             self.sock.close()
         except OSError:
             pass
-
-
-def _f(x: float | None) -> float:
-    return math.nan if x is None else float(x)
-
-
-def _imu(adapter: LegacyAdapter, t: ManagedThread) -> codec.Imu | None:
-    s = adapter.ctx.state.imu.read()
-    if s is None:
-        return None
-    slow = adapter.ctx.state.imu_slow.read()
-    return codec.Imu(
-        *s.rates_rad_s,
-        *s.accel_m_s2,
-        slow.temperature_c if slow is not None else math.nan,
-        t.cycles & 0xFFFFFFFF,
-    )
-
-
-def _gps(adapter: LegacyAdapter, t: ManagedThread) -> codec.Gps | None:
-    g = adapter.ctx.state.gps.read()
-    if g is None:
-        return None
-    return codec.Gps(
-        _f(g.lat_deg),
-        _f(g.lon_deg),
-        _f(g.alt_m),
-        _f(g.vn_m_s),
-        _f(g.ve_m_s),
-        _f(g.vd_m_s),
-        _f(g.pdop),
-        _f(g.hdop),
-        _f(g.vdop),
-        _f(g.tdop),
-        _f(None if g.latency_s is None else g.latency_s * 1e3),
-        _f(g.alt_std_m),
-        max(0, min(3, g.fix)),
-        min(g.sats or 0, 255),
-    )
-
-
-def _servo(adapter: LegacyAdapter, t: ManagedThread) -> codec.Servo | None:
-    s = adapter.ctx.state.servo.read()
-    if s is None:
-        return None
-    flags = (codec.ServoFlag.AUTOMATIC if s.auto_engaged else 0) | (
-        codec.ServoFlag.FAILSAFE if s.failsafe else 0
-    )
-    return codec.Servo(
-        tuple(s.pilot_us[:8]),
-        tuple(s.computer_us[:8]),
-        s.avionics_batt_raw,
-        s.servo_batt_raw,
-        int(flags),
-    )
-
-
-def _estimator(adapter: LegacyAdapter, t: ManagedThread) -> codec.Estimator | None:
-    e = adapter.ctx.state.estimator.read()
-    if e is None:
-        return None
-    return codec.Estimator(
-        e.roll_rad, e.pitch_rad, e.yaw_rad, *e.pos_ned_m, *e.vel_ned_m_s, *e.gyro_bias_rad_s
-    )
-
-
-def _control(adapter: LegacyAdapter, t: ManagedThread) -> codec.Control | None:
-    c = adapter.ctx.state.control.read()
-    if c is None:
-        return None
-    return codec.Control(c.aileron, c.elevator, c.rudder, c.throttle, int(c.enabled))
-
-
-DATA_MESSAGES = {
-    "imu": _imu,
-    "gps": _gps,
-    "servo": _servo,
-    "estimator": _estimator,
-    "control": _control,
-}

@@ -16,7 +16,8 @@ import sys
 import time
 from typing import Any
 
-from legacy_protocol.codec import DEFAULT_COMMAND_PORT, DEFAULT_MONITOR_PORT, Decoded, as_dict
+from legacy_protocol.codec import Decoded, as_dict
+from legacy_protocol.messages import DEFAULT_COMMAND_PORT, DEFAULT_MONITOR_PORT
 from legacy_protocol.monitor_link import CommandSender, LinkError, MonitorLink, Received
 
 __all__ = ["add_commands", "add_monitor_arguments", "main", "record_json", "run_monitor"]

@@ -1,64 +1,32 @@
-"""Codec for the thesis's legacy UDP ground/aircraft protocol.
+"""Codec for the thesis's legacy UDP ground/aircraft protocol: the header, encode and decode.
 
-The protocol, byte by byte, is documented in docs/legacy-protocol.md.  Every datagram is a 16-byte header followed by a
-fixed-size, little-endian, packed body chosen by the header's type byte.  Each body layout is
-declared exactly once, as a frozen dataclass whose field annotations carry the wire format
-(``Annotated[int, U32]``); the packing and unpacking code is derived from that declaration so the
-two directions cannot drift apart.
+The protocol, byte by byte, is documented in docs/legacy-protocol.md.  Every datagram is a 16-byte
+header followed by a fixed-size, little-endian, packed body chosen by the header's type byte.  The
+bodies are declared in :mod:`legacy_protocol.messages`; the packing and unpacking code here is
+derived from those declarations, so the two directions cannot drift apart.
 
 Decoding never raises: a datagram from the network is untrusted, so problems come back as a
 :class:`DecodeError` value naming the reason and the byte offset.  Encoding raises ``ValueError``
 because a bad value there is a bug in the caller, not bad input from the network.
-
-Size: the declarations of all 13 datagram layouts are most of it, and they belong in one
-place next to the code derived from them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import enum
 import math
 import struct
 import typing
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar
+from typing import Any
+
+from legacy_protocol.messages import NS_PER_S, PAYLOAD_CLASSES, MsgType, Payload, WireField
 
 __all__ = [
-    "COMMAND_TYPES",
-    "DEFAULT_COMMAND_PORT",
-    "DEFAULT_MONITOR_PORT",
     "HEADER_SIZE",
-    "MESSAGE_TYPES",
-    "UNCHANGED",
-    "AckResult",
-    "Command",
-    "CommandAck",
-    "Control",
     "DecodeError",
     "Decoded",
-    "Estimator",
-    "GpsFix",
-    "Gps",
     "Header",
-    "HorizonAttitude",
-    "Imu",
-    "ManagerStatus",
-    "Message",
-    "MsgType",
-    "Payload",
-    "RestartThread",
-    "Servo",
-    "ServoFlag",
-    "SetManagerParams",
-    "SetThreadParams",
-    "Stop",
-    "StopReason",
-    "ThreadFlag",
-    "ThreadId",
-    "ThreadStatus",
-    "WireField",
     "as_dict",
     "decode",
     "encode",
@@ -70,300 +38,10 @@ __all__ = [
 HEADER_SIZE = 16
 """Bytes of the common header that starts every datagram."""
 
-DEFAULT_MONITOR_PORT = 5501
-"""UDP port the aircraft sends messages to (monitors listen here)."""
-
-DEFAULT_COMMAND_PORT = 5500
-"""UDP port the aircraft listens on for commands."""
-
-UNCHANGED = 0xFFFFFFFF
-"""Parameter value in SET_* commands meaning 'keep the current setting'."""
-
-_NS_PER_S = 1_000_000_000
 _HEADER = struct.Struct("<BBHIiI")
 
-
-class MsgType(enum.IntEnum):
-    """Type byte of every datagram; messages are < 0x80, commands >= 0x80."""
-
-    THREAD_STATUS = 0x01
-    MANAGER_STATUS = 0x02
-    COMMAND_ACK = 0x03
-    IMU = 0x10
-    GPS = 0x11
-    SERVO = 0x12
-    ESTIMATOR = 0x13
-    CONTROL = 0x14
-    SET_THREAD_PARAMS = 0x81
-    SET_MANAGER_PARAMS = 0x82
-    STOP = 0x83
-    HORIZON_ATTITUDE = 0x84
-    RESTART_THREAD = 0x85
-
-
-class ThreadId(enum.IntEnum):
-    """Ids of the standard managed threads; further threads take the next free ids."""
-
-    IMU = 1
-    GPS = 2
-    SERVO = 3
-    ESTIMATOR = 4
-    CONTROL = 5
-
-
-class ThreadFlag(enum.IntFlag):
-    """THREAD_STATUS.flags bits, in the order the thesis's four LEDs show them."""
-
-    INITIALISED = 0x01
-    RUNNING = 0x02
-    IN_PERIODIC = 0x04
-    ALIVE = 0x08
-
-
-class ServoFlag(enum.IntFlag):
-    """SERVO.flags bits."""
-
-    AUTOMATIC = 0x01
-    FAILSAFE = 0x02
-
-
-class AckResult(enum.IntEnum):
-    """COMMAND_ACK.result values."""
-
-    ACCEPTED = 0
-    BAD_VALUE = 1
-    UNKNOWN_THREAD = 2
-    NOT_ALLOWED = 3
-
-
-class GpsFix(enum.IntEnum):
-    """GPS.fix_type values."""
-
-    NONE = 0
-    GPS = 1
-    DGPS = 2
-    RTK = 3
-
-
-class StopReason(enum.IntEnum):
-    """STOP.reason values; only the operator reason is defined by the contract."""
-
-    OPERATOR = 0
-
-
-@dataclass(frozen=True)
-class WireField:
-    """Wire format of one dataclass field: a struct code, repeated ``count`` times.
-
-    ``count > 1`` makes the field a tuple of that many values.  ``pad_after`` zero bytes follow the
-    field on the wire (reserved space in the contract); they are written as zero and ignored when
-    read, so a future sender may use them without breaking this decoder.
-    """
-
-    code: str
-    count: int = 1
-    pad_after: int = 0
-
-
-U8 = WireField("B")
-U16 = WireField("H")
-U32 = WireField("I")
-I32 = WireField("i")
-F32 = WireField("f")
-F64 = WireField("d")
-
-
-def _u8_pad(pad: int) -> WireField:
-    """A uint8 followed by ``pad`` reserved zero bytes."""
-    return WireField("B", pad_after=pad)
-
-
 # ---------------------------------------------------------------------------------------------
-# Message bodies, aircraft to ground.  Field order is the contract's table order.
-
-
-@dataclass(frozen=True)
-class ThreadStatus:
-    """One managed thread's execution state, sent in rotation by the thread manager."""
-
-    TYPE: ClassVar[MsgType] = MsgType.THREAD_STATUS
-    thread_id: Annotated[int, U8]
-    flags: Annotated[int, U8]
-    restarts: Annotated[int, U16]
-    mean_step_us: Annotated[int, U32]
-    watchdog_period_ms: Annotated[int, U32]
-    message_period_ms: Annotated[int, U32]
-    name: Annotated[str, WireField("16s")]
-
-    def has(self, flag: ThreadFlag) -> bool:
-        """True if every bit of ``flag`` is set, so callers need not mask by hand."""
-        return (self.flags & flag) == flag
-
-
-@dataclass(frozen=True)
-class ManagerStatus:
-    """Global watchdog settings and uptime of the on-board application."""
-
-    TYPE: ClassVar[MsgType] = MsgType.MANAGER_STATUS
-    elapsed_ms: Annotated[int, U32]
-    execution_time_s: Annotated[int, U32]
-    status_period_ms: Annotated[int, U32]
-    granularity_ms: Annotated[int, U32]
-    thread_count: Annotated[int, _u8_pad(3)]
-
-
-@dataclass(frozen=True)
-class CommandAck:
-    """The aircraft's answer to one command, matched by the command's sequence number."""
-
-    TYPE: ClassVar[MsgType] = MsgType.COMMAND_ACK
-    command_type: Annotated[int, U8]
-    result: Annotated[int, _u8_pad(2)]
-    command_seq: Annotated[int, U32]
-
-
-@dataclass(frozen=True)
-class Imu:
-    """Latest IMU sample: body rates, specific force, sensor temperature."""
-
-    TYPE: ClassVar[MsgType] = MsgType.IMU
-    p_rad_s: Annotated[float, F32]
-    q_rad_s: Annotated[float, F32]
-    r_rad_s: Annotated[float, F32]
-    ax_m_s2: Annotated[float, F32]
-    ay_m_s2: Annotated[float, F32]
-    az_m_s2: Annotated[float, F32]
-    temperature_c: Annotated[float, F32]
-    frame_count: Annotated[int, U32]
-
-
-@dataclass(frozen=True)
-class Gps:
-    """Latest GPS solution with its accuracy indicators."""
-
-    TYPE: ClassVar[MsgType] = MsgType.GPS
-    lat_deg: Annotated[float, F64]
-    lon_deg: Annotated[float, F64]
-    alt_m: Annotated[float, F32]
-    v_north_m_s: Annotated[float, F32]
-    v_east_m_s: Annotated[float, F32]
-    v_down_m_s: Annotated[float, F32]
-    pdop: Annotated[float, F32]
-    hdop: Annotated[float, F32]
-    vdop: Annotated[float, F32]
-    tdop: Annotated[float, F32]
-    latency_ms: Annotated[float, F32]
-    alt_std_m: Annotated[float, F32]
-    fix_type: Annotated[int, U8]
-    satellites: Annotated[int, _u8_pad(2)]
-
-
-@dataclass(frozen=True)
-class Servo:
-    """Pilot and computer servo commands, battery levels and mode flags."""
-
-    TYPE: ClassVar[MsgType] = MsgType.SERVO
-    pilot_us: Annotated[tuple[int, ...], WireField("H", count=8)]
-    computer_us: Annotated[tuple[int, ...], WireField("H", count=8)]
-    avionics_battery_raw: Annotated[int, U8]
-    servo_battery_raw: Annotated[int, U8]
-    flags: Annotated[int, _u8_pad(1)]
-
-
-@dataclass(frozen=True)
-class Estimator:
-    """Attitude, local position and velocity estimate plus gyro biases."""
-
-    TYPE: ClassVar[MsgType] = MsgType.ESTIMATOR
-    roll_rad: Annotated[float, F32]
-    pitch_rad: Annotated[float, F32]
-    yaw_rad: Annotated[float, F32]
-    north_m: Annotated[float, F32]
-    east_m: Annotated[float, F32]
-    down_m: Annotated[float, F32]
-    v_north_m_s: Annotated[float, F32]
-    v_east_m_s: Annotated[float, F32]
-    v_down_m_s: Annotated[float, F32]
-    gyro_bias_x_rad_s: Annotated[float, F32]
-    gyro_bias_y_rad_s: Annotated[float, F32]
-    gyro_bias_z_rad_s: Annotated[float, F32]
-
-
-@dataclass(frozen=True)
-class Control:
-    """Normalised control-surface and throttle outputs of the control thread."""
-
-    TYPE: ClassVar[MsgType] = MsgType.CONTROL
-    aileron: Annotated[float, F32]
-    elevator: Annotated[float, F32]
-    rudder: Annotated[float, F32]
-    throttle: Annotated[float, F32]
-    enabled: Annotated[int, _u8_pad(3)]
-
-
-# ---------------------------------------------------------------------------------------------
-# Command bodies, ground to aircraft.
-
-
-@dataclass(frozen=True)
-class SetThreadParams:
-    """Change one thread's watchdog and message periods (UNCHANGED keeps a value)."""
-
-    TYPE: ClassVar[MsgType] = MsgType.SET_THREAD_PARAMS
-    thread_id: Annotated[int, _u8_pad(3)]
-    watchdog_period_ms: Annotated[int, U32] = UNCHANGED
-    message_period_ms: Annotated[int, U32] = UNCHANGED
-
-
-@dataclass(frozen=True)
-class SetManagerParams:
-    """Change the manager's execution time, status period and watchdog granularity."""
-
-    TYPE: ClassVar[MsgType] = MsgType.SET_MANAGER_PARAMS
-    execution_time_s: Annotated[int, U32] = UNCHANGED
-    status_period_ms: Annotated[int, U32] = UNCHANGED
-    granularity_ms: Annotated[int, U32] = UNCHANGED
-
-
-@dataclass(frozen=True)
-class Stop:
-    """Ask the on-board application to stop every thread cleanly and exit."""
-
-    TYPE: ClassVar[MsgType] = MsgType.STOP
-    reason: Annotated[int, U32] = 0  # StopReason.OPERATOR; a plain int keeps JSON output plain
-
-
-@dataclass(frozen=True)
-class HorizonAttitude:
-    """Attitude measured on the ground by horizon detection, stamped with its video frame time."""
-
-    TYPE: ClassVar[MsgType] = MsgType.HORIZON_ATTITUDE
-    roll_rad: Annotated[float, F32]
-    pitch_rad: Annotated[float, F32]
-    quality: Annotated[float, F32]
-    frame_tv_sec: Annotated[int, I32]
-    frame_tv_nsec: Annotated[int, U32]
-
-    @property
-    def frame_t_ns(self) -> int:
-        """Frame time as integer nanoseconds since the epoch."""
-        return self.frame_tv_sec * _NS_PER_S + self.frame_tv_nsec
-
-
-@dataclass(frozen=True)
-class RestartThread:
-    """Ask the manager to restart one thread."""
-
-    TYPE: ClassVar[MsgType] = MsgType.RESTART_THREAD
-    thread_id: Annotated[int, _u8_pad(3)]
-
-
-Message = ThreadStatus | ManagerStatus | CommandAck | Imu | Gps | Servo | Estimator | Control
-Command = SetThreadParams | SetManagerParams | Stop | HorizonAttitude | RestartThread
-Payload = Message | Command
-
-# ---------------------------------------------------------------------------------------------
-# Layout machinery: derived from the declarations above, never written by hand per type.
+# Layout machinery: derived from the declarations in messages, never written by hand per type.
 
 
 @dataclass(frozen=True)
@@ -396,29 +74,8 @@ def _build_layout(cls: type[Any]) -> _Layout:
     return _Layout(cls, cls.TYPE, HEADER_SIZE + body.size, body, fields)
 
 
-_PAYLOAD_CLASSES: tuple[type[Any], ...] = (
-    ThreadStatus,
-    ManagerStatus,
-    CommandAck,
-    Imu,
-    Gps,
-    Servo,
-    Estimator,
-    Control,
-    SetThreadParams,
-    SetManagerParams,
-    Stop,
-    HorizonAttitude,
-    RestartThread,
-)
-_LAYOUTS: dict[int, _Layout] = {cls.TYPE: _build_layout(cls) for cls in _PAYLOAD_CLASSES}
+_LAYOUTS: dict[int, _Layout] = {cls.TYPE: _build_layout(cls) for cls in PAYLOAD_CLASSES}
 _BY_CLASS: dict[type[Any], _Layout] = {lay.cls: lay for lay in _LAYOUTS.values()}
-
-MESSAGE_TYPES: frozenset[MsgType] = frozenset(t for t in MsgType if t < 0x80)
-"""Types sent by the aircraft."""
-
-COMMAND_TYPES: frozenset[MsgType] = frozenset(t for t in MsgType if t >= 0x80)
-"""Types sent by the ground."""
 
 
 def layout_of(type_code: int) -> tuple[str, int]:
@@ -455,7 +112,7 @@ class Header:
     @property
     def t_ns(self) -> int:
         """Send time as integer nanoseconds since the epoch."""
-        return self.tv_sec * _NS_PER_S + self.tv_nsec
+        return self.tv_sec * NS_PER_S + self.tv_nsec
 
 
 @dataclass(frozen=True)
@@ -537,7 +194,7 @@ def encode(msg: Payload, *, vehicle_id: int, seq: int, t_ns: int) -> bytes:
         raise ValueError(f"not a legacy protocol payload: {type(msg).__name__}")
     if not 1 <= vehicle_id <= 255:
         raise ValueError(f"vehicle_id {vehicle_id} outside 1..255")
-    tv_sec, tv_nsec = divmod(int(t_ns), _NS_PER_S)
+    tv_sec, tv_nsec = divmod(int(t_ns), NS_PER_S)
     if not -(2**31) <= tv_sec < 2**31:
         raise ValueError(f"t_ns {t_ns} does not fit the header's int32 seconds")
     values = list(_flatten(lay, msg))
@@ -588,7 +245,7 @@ def decode(datagram: bytes | bytearray | memoryview) -> Decoded | DecodeError:
         return DecodeError(f"size field says {size_field}, {name} is {lay.size}", 2)
     if vehicle_id == 0:
         return DecodeError("vehicle id 0 (must be 1..255)", 1)
-    if tv_nsec >= _NS_PER_S:
+    if tv_nsec >= NS_PER_S:
         return DecodeError(f"header tv_nsec {tv_nsec} is not below 1e9", 12)
     payload = _build(lay, lay.body.unpack_from(data, HEADER_SIZE))
     header = Header(type_code, vehicle_id, size_field, seq, tv_sec, tv_nsec)

@@ -25,7 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from legacy_protocol.codec import (
+from legacy_protocol.codec import Decoded, DecodeError, decode, encode
+from legacy_protocol.messages import (
     COMMAND_TYPES,
     DEFAULT_COMMAND_PORT,
     DEFAULT_MONITOR_PORT,
@@ -33,8 +34,6 @@ from legacy_protocol.codec import (
     Command,
     CommandAck,
     Control,
-    Decoded,
-    DecodeError,
     Estimator,
     Gps,
     Imu,
@@ -43,8 +42,6 @@ from legacy_protocol.codec import (
     MsgType,
     Servo,
     ThreadStatus,
-    decode,
-    encode,
 )
 
 __all__ = [

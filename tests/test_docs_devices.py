@@ -23,7 +23,8 @@ import pytest
 from conftest import data_file
 
 from companion.drivers.gps import EXPECTED as DRIVER_EXPECTED_SENTENCES
-from companion.drivers.gps_protocol import GpsSolution, NmeaDecoder
+from companion.drivers.gps_protocol import NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import (
     FAST_FRAME_LEN,
     SLOW_BLOCK_LEN,

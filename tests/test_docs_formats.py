@@ -22,7 +22,7 @@ from companion.logs import records
 from companion.logs.convert import convert_file
 from companion.logs.formats import FormatError, parse_format
 from companion.logs.reader import framed_length, read_log_bytes
-from legacy_protocol import codec
+from legacy_protocol import codec, messages
 
 REPO = Path(__file__).resolve().parent.parent
 DOCS = REPO / "docs"
@@ -356,7 +356,7 @@ def _type_size(text: str) -> int:
     return _TYPE_SIZES[m.group(1)] * int(m.group(2) or 1)
 
 
-def _wire_type(wire: codec.WireField) -> str:
+def _wire_type(wire: messages.WireField) -> str:
     if wire.code.endswith("s"):
         return f"char[{wire.code[:-1]}]"
     base = _WIRE_TYPES[wire.code]
@@ -378,9 +378,9 @@ def test_legacy_type_table_matches_the_codec() -> None:
         seen.add(code)
         assert codec.layout_of(code) == (name, int(total)), code_cell
         assert int(body) == int(total) - codec.HEADER_SIZE, name
-        expected = "aircraft → ground" if code in codec.MESSAGE_TYPES else "ground → aircraft"
+        expected = "aircraft → ground" if code in messages.MESSAGE_TYPES else "ground → aircraft"
         assert direction == expected, name
-    assert seen == {int(t) for t in codec.MsgType}
+    assert seen == {int(t) for t in messages.MsgType}
 
 
 def test_legacy_field_tables_match_the_codec() -> None:
@@ -415,7 +415,7 @@ def test_legacy_field_tables_match_the_codec() -> None:
                 got.append((int(offset_cell), _ticked(field_cell), type_cell))
         assert got == expected, title
         assert got_reserved == reserved_sizes, title
-    assert seen == {int(t) for t in codec.MsgType}
+    assert seen == {int(t) for t in messages.MsgType}
 
 
 def test_legacy_header_table_reads_every_vector() -> None:
@@ -472,11 +472,11 @@ def test_legacy_worked_examples_decode_as_shown() -> None:
 def test_legacy_ack_results_and_ports_match_the_codec() -> None:
     text = _doc("legacy-protocol.md")
     rows = _table(_section(text, "## Commands and acknowledgements"), "result")
-    assert {int(r[0]): _ticked(r[1]) for r in rows} == {int(r): r.name for r in codec.AckResult}
+    assert {int(r[0]): _ticked(r[1]) for r in rows} == {int(r): r.name for r in messages.AckResult}
     transport = _table(_section(text, "## Transport"), "datagrams")
     ports = {row[0].split()[0]: re.findall(r"\*\*(\d+)\*\*", row[3]) for row in transport}
-    assert ports["messages"] == [str(codec.DEFAULT_MONITOR_PORT)]
-    assert ports["commands"] == [str(codec.DEFAULT_COMMAND_PORT)]
+    assert ports["messages"] == [str(messages.DEFAULT_MONITOR_PORT)]
+    assert ports["commands"] == [str(messages.DEFAULT_COMMAND_PORT)]
 
 
 # -- both pages -------------------------------------------------------------------------------

@@ -350,7 +350,7 @@ def test_a_full_disk_turns_one_log_off_reports_it_and_the_driver_flies_on(
 
 def test_gps_copies_are_dropped_and_a_utc_jump_is_told_but_midnight_is_not() -> None:
     from companion.drivers.gps import GpsDriver
-    from companion.drivers.gps_protocol import GpsSolution
+    from companion.drivers.gps_solution import GpsSolution
 
     gps = GpsDriver("loop://", task=VEHICLE["gps"].task)
     told: list[str] = []
@@ -385,7 +385,7 @@ def test_gps_heading_reaches_the_flight_only_from_a_receiver_declared_to_send_it
     """With GPS_HDT at 0 an HDT sent after the timed sentences joins the next epoch, 0.1 s
     stale: the driver passes no heading on; with GPS_HDT at 1 it does."""
     from companion.drivers.gps import GpsDriver
-    from companion.drivers.gps_protocol import GpsSolution
+    from companion.drivers.gps_solution import GpsSolution
 
     gps = GpsDriver("loop://", task=VEHICLE["gps"].task)
     sol = GpsSolution(utc=100.0, lat_deg=47.0, lon_deg=8.0, alt_m=500.0, fix=1, heading_deg=12.5)

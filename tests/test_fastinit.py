@@ -10,14 +10,14 @@ import pytest
 
 from companion.core import state
 from companion.core.fastinit import fast_frozen
-from companion.drivers import gps_protocol, imu_protocol, servo_protocol
+from companion.drivers import gps_solution, imu_protocol, servo_protocol
 from companion.sim import flight
 
 FAST_CLASSES = [
     state.ImuSample, state.ImuSlowSample, state.GpsFix, state.ServoState, state.EstimatorState,
     state.ControlOutput, state.HorizonMeasurement, flight.TruthState, imu_protocol.ImuFast,
     imu_protocol.ImuSlow, servo_protocol.ServoCommand, servo_protocol.PilotFrame,
-    gps_protocol.GpsSolution,
+    gps_solution.GpsSolution,
 ]
 
 

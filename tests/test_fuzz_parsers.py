@@ -46,13 +46,9 @@ from companion.core.params import (
     int_param,
     parse_param_file,
 )
-from companion.drivers.gps_protocol import (
-    MAX_LINE_CHARS,
-    GpsSolution,
-    NmeaDecoder,
-    encode_epoch,
-    nmea_sentence,
-)
+from companion.drivers.gps_encoder import encode_epoch
+from companion.drivers.gps_protocol import MAX_LINE_CHARS, NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import (
     FAST_FRAME_LEN,
     SYNC,
@@ -63,6 +59,7 @@ from companion.drivers.imu_protocol import (
     decode_fast_frame,
     encode_fast_frame,
 )
+from companion.drivers.nmea_fields import nmea_sentence
 from companion.drivers.servo_protocol import (
     COMMAND_LEN,
     COMMAND_SYNC,
@@ -84,7 +81,7 @@ from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.signing import SignatureChecker, signing_timestamp
 from gcs_bridge.testing import MiniGcs, SyntheticVehicle
-from legacy_protocol import codec
+from legacy_protocol import codec, messages
 from legacy_protocol.monitor_link import Fleet, Received
 
 # ---------------------------------------------------------------------------------------------
@@ -482,7 +479,7 @@ def _header(type_code: int, vehicle: int, size: int, seq: int, sec: int, nsec: i
 @st.composite
 def legacy_datagrams(draw: st.DrawFn) -> bytes:
     """A well-formed datagram of any type (random body bytes), then maybe some damage."""
-    type_code = draw(st.sampled_from(sorted(codec.MESSAGE_TYPES | codec.COMMAND_TYPES)))
+    type_code = draw(st.sampled_from(sorted(messages.MESSAGE_TYPES | messages.COMMAND_TYPES)))
     _, size = codec.layout_of(type_code)
     raw = bytearray(_header(type_code, draw(st.integers(1, 255)), size,
                             draw(st.integers(0, 2**32 - 1)), draw(st.integers(-(2**31), 2**31 - 1)),
@@ -513,7 +510,7 @@ def test_legacy_decode_never_raises_and_reencodes(raw: bytes) -> None:
         return
     h = result.header
     assert len(raw) == h.size and 1 <= h.vehicle_id <= 255 and 0 <= h.tv_nsec < 10**9
-    assert result.name == codec.MsgType(h.type_code).name
+    assert result.name == messages.MsgType(h.type_code).name
     # what was decoded can be sent again (the monitor and adapter re-encode decoded payloads)
     again = codec.encode(result.payload, vehicle_id=h.vehicle_id, seq=h.seq, t_ns=h.t_ns)
     assert again[: codec.HEADER_SIZE] == raw[: codec.HEADER_SIZE]
@@ -544,10 +541,10 @@ def test_legacy_monitor_fleet_folds_any_datagram(
 
 def test_legacy_monitor_malformed_reasons_stay_bounded() -> None:
     fleet = Fleet()
-    _, size = codec.layout_of(codec.MsgType.IMU)
+    _, size = codec.layout_of(messages.MsgType.IMU)
     body = bytes(size - codec.HEADER_SIZE)
     for k in range(1000):
-        raw = _header(codec.MsgType.IMU, 1, size, k, 0, 10**9 + k) + body
+        raw = _header(messages.MsgType.IMU, 1, size, k, 0, 10**9 + k) + body
         fleet.apply(Received(("10.0.0.1", 5500), float(k), float(k), len(raw), codec.decode(raw)))
     assert fleet.malformed == 1000
     # at most one key per kind of problem (the 256 type codes of "unknown type 0x.." included)

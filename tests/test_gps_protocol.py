@@ -20,14 +20,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.drivers.gps_protocol import (
-    KNOTS_TO_M_S,
-    MAX_LINE_CHARS,
-    GpsSolution,
-    NmeaDecoder,
-    encode_epoch,
-    nmea_sentence,
-)
+from companion.drivers.gps_encoder import encode_epoch
+from companion.drivers.gps_protocol import MAX_LINE_CHARS, NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
+from companion.drivers.nmea_fields import KNOTS_TO_M_S, nmea_sentence
 
 CAPTURE = (Path(__file__).parent / "data" / "gps_gn_ashtech_capture.nmea").read_bytes()
 ALL = ["GGA", "RMC", "VTG", "GSA", "GST", "POS"]

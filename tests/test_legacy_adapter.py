@@ -13,7 +13,7 @@ import pytest
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry
 from companion.watchdog import RuntimeContext, ThreadManager
-from legacy_protocol import codec
+from legacy_protocol import codec, messages
 from legacy_protocol.adapter import WAIT_CAP_S, LegacyAdapter, bounded_wait_s
 
 SENDER = ("127.0.0.1", 40000)
@@ -29,7 +29,7 @@ def adapter() -> Iterator[LegacyAdapter]:
         a.sock.close()
 
 
-def _send(a: LegacyAdapter, cmd: codec.Payload, *, vehicle_id: int = 3, seq: int = 1) -> None:
+def _send(a: LegacyAdapter, cmd: messages.Payload, *, vehicle_id: int = 3, seq: int = 1) -> None:
     a.handle_datagram(codec.encode(cmd, vehicle_id=vehicle_id, seq=seq, t_ns=0), SENDER)
 
 
@@ -45,17 +45,17 @@ def _acks(a: LegacyAdapter) -> list[tuple[int, int]]:
 def test_execution_time_zero_means_unlimited_and_is_accepted(adapter: LegacyAdapter) -> None:
     params = adapter.ctx.params
     params.set("MGR_EXEC_TIME_S", 60)
-    _send(adapter, codec.SetManagerParams(0, codec.UNCHANGED, codec.UNCHANGED), seq=7)
+    _send(adapter, messages.SetManagerParams(0, messages.UNCHANGED, messages.UNCHANGED), seq=7)
     adapter.process_commands()
-    assert _acks(adapter) == [(7, codec.AckResult.ACCEPTED)]
+    assert _acks(adapter) == [(7, messages.AckResult.ACCEPTED)]
     assert params.get("MGR_EXEC_TIME_S") == 0
 
 
 def test_a_zero_period_is_still_refused(adapter: LegacyAdapter) -> None:
     before = adapter.ctx.params.get("MGR_STATUS_MS")
-    _send(adapter, codec.SetManagerParams(codec.UNCHANGED, 0, codec.UNCHANGED), seq=8)
+    _send(adapter, messages.SetManagerParams(messages.UNCHANGED, 0, messages.UNCHANGED), seq=8)
     adapter.process_commands()
-    assert _acks(adapter) == [(8, codec.AckResult.BAD_VALUE)]
+    assert _acks(adapter) == [(8, messages.AckResult.BAD_VALUE)]
     assert adapter.ctx.params.get("MGR_STATUS_MS") == before
 
 
@@ -63,7 +63,7 @@ def test_a_command_for_another_aircraft_is_neither_executed_nor_answered(
     adapter: LegacyAdapter,
 ) -> None:
     adapter.ctx.params.set("MGR_EXEC_TIME_S", 60)
-    _send(adapter, codec.SetManagerParams(0, codec.UNCHANGED, codec.UNCHANGED), vehicle_id=4)
+    _send(adapter, messages.SetManagerParams(0, messages.UNCHANGED, messages.UNCHANGED), vehicle_id=4)
     adapter.process_commands()
     assert _acks(adapter) == []
     assert adapter.ctx.params.get("MGR_EXEC_TIME_S") == 60
@@ -72,12 +72,12 @@ def test_a_command_for_another_aircraft_is_neither_executed_nor_answered(
 
 def test_a_command_that_finds_its_queue_full_is_answered_rejected(adapter: LegacyAdapter) -> None:
     for seq in range(1, 66):  # the queue holds 64; nothing consumes it in between
-        _send(adapter, codec.SetManagerParams(codec.UNCHANGED, 1000, codec.UNCHANGED), seq=seq)
-    assert _acks(adapter) == [(65, codec.AckResult.BAD_VALUE)]
+        _send(adapter, messages.SetManagerParams(messages.UNCHANGED, 1000, messages.UNCHANGED), seq=seq)
+    assert _acks(adapter) == [(65, messages.AckResult.BAD_VALUE)]
     assert adapter.counters.queue_full == 1
     adapter.process_commands()
     acks = _acks(adapter)
-    assert len(acks) == 64 and all(r == codec.AckResult.ACCEPTED for _, r in acks)
+    assert len(acks) == 64 and all(r == messages.AckResult.ACCEPTED for _, r in acks)
 
 
 def test_the_sender_sleeps_until_its_next_message_within_a_quarter_watchdog(

@@ -13,20 +13,16 @@ from conftest import data_file
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from legacy_protocol import codec
-from legacy_protocol.codec import (
+from legacy_protocol import codec, messages
+from legacy_protocol.codec import HEADER_SIZE, Decoded, DecodeError, decode, encode
+from legacy_protocol.messages import (
     COMMAND_TYPES,
-    HEADER_SIZE,
     MESSAGE_TYPES,
     UNCHANGED,
-    Decoded,
-    DecodeError,
     MsgType,
     SetThreadParams,
     ThreadFlag,
     ThreadStatus,
-    decode,
-    encode,
 )
 
 VECTORS_PATH = data_file("vectors", "legacy-udp.json")
@@ -131,10 +127,10 @@ def test_sizes_match_contract_tables() -> None:
 
 def test_constants() -> None:
     assert UNCHANGED == 0xFFFFFFFF
-    assert [int(t) for t in codec.ThreadId] == [1, 2, 3, 4, 5]
+    assert [int(t) for t in messages.ThreadId] == [1, 2, 3, 4, 5]
     assert [int(f) for f in ThreadFlag] == [1, 2, 4, 8]
-    assert [int(r) for r in codec.AckResult] == [0, 1, 2, 3]
-    assert codec.DEFAULT_COMMAND_PORT == 5500 and codec.DEFAULT_MONITOR_PORT == 5501
+    assert [int(r) for r in messages.AckResult] == [0, 1, 2, 3]
+    assert messages.DEFAULT_COMMAND_PORT == 5500 and messages.DEFAULT_MONITOR_PORT == 5501
     status = ThreadStatus(1, 0b0101, 0, 0, 0, 0, "x")
     assert status.has(ThreadFlag.INITIALISED) and status.has(ThreadFlag.IN_PERIODIC)
     assert not status.has(ThreadFlag.RUNNING) and not status.has(ThreadFlag.ALIVE)
@@ -287,13 +283,13 @@ def test_encode_names_the_bad_field() -> None:
     with pytest.raises(ValueError, match=r"THREAD_STATUS\.name: .*not in range"):
         encode(ThreadStatus(1, 0, 0, 0, 0, 0, "imu→"), vehicle_id=1, seq=0, t_ns=0)
     with pytest.raises(ValueError, match=r"SERVO\.pilot_us: expected 8 values"):
-        encode(codec.Servo((1500,) * 7, (1500,) * 8, 0, 0, 0), vehicle_id=1, seq=0, t_ns=0)
+        encode(messages.Servo((1500,) * 7, (1500,) * 8, 0, 0, 0), vehicle_id=1, seq=0, t_ns=0)
     with pytest.raises(ValueError, match=r"IMU\.p_rad_s=1e\+300"):
-        encode(codec.Imu(1e300, 0, 0, 0, 0, 0, 0, 0), vehicle_id=1, seq=0, t_ns=0)
+        encode(messages.Imu(1e300, 0, 0, 0, 0, 0, 0, 0), vehicle_id=1, seq=0, t_ns=0)
     with pytest.raises(ValueError, match="vehicle_id 0"):
-        encode(codec.Stop(), vehicle_id=0, seq=0, t_ns=0)
+        encode(messages.Stop(), vehicle_id=0, seq=0, t_ns=0)
     with pytest.raises(ValueError, match="int32 seconds"):
-        encode(codec.Stop(), vehicle_id=1, seq=0, t_ns=2**31 * 10**9)
+        encode(messages.Stop(), vehicle_id=1, seq=0, t_ns=2**31 * 10**9)
     with pytest.raises(ValueError, match="not a legacy protocol payload"):
         encode("hello", vehicle_id=1, seq=0, t_ns=0)  # type: ignore[arg-type]
 
@@ -308,8 +304,8 @@ def test_sequence_wraps_and_defaults_mean_unchanged() -> None:
 
 
 def test_as_dict_is_json_safe() -> None:
-    d = codec.as_dict(codec.Imu(math.nan, math.inf, 0.5, 0, 0, 0, 20.0, 3))
+    d = codec.as_dict(messages.Imu(math.nan, math.inf, 0.5, 0, 0, 0, 20.0, 3))
     assert d["p_rad_s"] is None and d["q_rad_s"] is None and d["r_rad_s"] == 0.5
-    servo = codec.as_dict(codec.Servo((1,) * 8, (2,) * 8, 3, 4, 1))
+    servo = codec.as_dict(messages.Servo((1,) * 8, (2,) * 8, 3, 4, 1))
     assert servo["pilot_us"] == [1] * 8
     json.dumps(d, allow_nan=False)

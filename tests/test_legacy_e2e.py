@@ -16,7 +16,7 @@ from conftest import free_udp_port
 from pymavlink import mavutil
 
 from companion.logs import read_log
-from legacy_protocol import codec
+from legacy_protocol import codec, messages
 from legacy_protocol.monitor_link import CommandSender, MonitorLink
 
 CORE_THREADS = {1: "imu", 2: "gps", 3: "servo", 4: "estimator", 5: "control"}
@@ -82,21 +82,21 @@ def test_monitor_sees_every_thread_sets_a_period_and_stops_the_runtime(tmp_path:
         for tid, name in CORE_THREADS.items():
             st = v.threads[tid]
             assert st.name == name
-            assert st.has(codec.ThreadFlag.INITIALISED) and st.has(codec.ThreadFlag.RUNNING)
-        assert poll_until(link, lambda: v.latest(codec.Imu) is not None
-                          and v.latest(codec.Gps) is not None
-                          and v.latest(codec.Estimator) is not None, 20)
-        gps = v.latest(codec.Gps)
+            assert st.has(messages.ThreadFlag.INITIALISED) and st.has(messages.ThreadFlag.RUNNING)
+        assert poll_until(link, lambda: v.latest(messages.Imu) is not None
+                          and v.latest(messages.Gps) is not None
+                          and v.latest(messages.Estimator) is not None, 20)
+        gps = v.latest(messages.Gps)
         assert gps is not None and abs(gps.lat_deg - 43.68) < 0.1
 
         # a period changed from the monitor is acknowledged, applied, and seen on MAVLink
-        outcome = sender.request(codec.SetThreadParams(1, 750, codec.UNCHANGED), vehicle_id=1)
+        outcome = sender.request(messages.SetThreadParams(1, 750, messages.UNCHANGED), vehicle_id=1)
         assert outcome.accepted, outcome.text
         assert poll_until(link, lambda: v.threads[1].watchdog_period_ms == 750, 20)
-        bad = sender.request(codec.SetThreadParams(1, 0, codec.UNCHANGED), vehicle_id=1)
-        assert bad.ack is not None and bad.ack.result == codec.AckResult.BAD_VALUE
-        unknown = sender.request(codec.SetThreadParams(99, 500, codec.UNCHANGED), vehicle_id=1)
-        assert unknown.ack is not None and unknown.ack.result == codec.AckResult.UNKNOWN_THREAD
+        bad = sender.request(messages.SetThreadParams(1, 0, messages.UNCHANGED), vehicle_id=1)
+        assert bad.ack is not None and bad.ack.result == messages.AckResult.BAD_VALUE
+        unknown = sender.request(messages.SetThreadParams(99, 500, messages.UNCHANGED), vehicle_id=1)
+        assert unknown.ack is not None and unknown.ack.result == messages.AckResult.UNKNOWN_THREAD
         assert gcs.wait_heartbeat(timeout=30) is not None
         value = None
         deadline = time.monotonic() + 20
@@ -111,7 +111,7 @@ def test_monitor_sees_every_thread_sets_a_period_and_stops_the_runtime(tmp_path:
         assert int.from_bytes(raw, "little", signed=True) == 750 or value.param_value == 750
 
         # STOP ends the runtime cleanly, with every log closed
-        stop = sender.request(codec.Stop(0), vehicle_id=1)
+        stop = sender.request(messages.Stop(0), vehicle_id=1)
         assert stop.accepted, stop.text
         assert sim.proc.wait(15) == 0
         fdir = sim.flight_dir()
@@ -140,7 +140,7 @@ def test_garbage_flood_does_not_disturb_the_aircraft(tmp_path: Path) -> None:
         rng = np.random.default_rng(1)
         junk = [rng.integers(0, 256, int(n), dtype=np.uint8).tobytes()
                 for n in rng.integers(1, 200, 500)]
-        valid = codec.encode(codec.SetThreadParams(1, 400), vehicle_id=1, seq=1, t_ns=0)
+        valid = codec.encode(messages.SetThreadParams(1, 400), vehicle_id=1, seq=1, t_ns=0)
         junk += [valid[:10], valid + b"x", bytes([0x81]) + valid[1:20], b"\x84" * 36]
         stop = threading.Event()
         sent = [0]
@@ -186,7 +186,7 @@ def test_refused_source_is_dropped(tmp_path: Path) -> None:
     sender = CommandSender(("127.0.0.1", sim.cmd_port), timeout_s=1.0)
     try:
         assert poll_until(link, lambda: bool(link.fleet.ordered()), 60)
-        outcome = sender.request(codec.Stop(0), vehicle_id=1)
+        outcome = sender.request(messages.Stop(0), vehicle_id=1)
         assert outcome.ack is None  # dropped, not acknowledged
         time.sleep(0.5)  # nothing to wait for: the runtime must simply still be running
         assert sim.proc.poll() is None

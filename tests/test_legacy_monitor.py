@@ -22,11 +22,11 @@ from textual.pilot import Pilot
 from textual.widgets import Input, Label, Select, Sparkline, Static
 
 from legacy_protocol import cli
-from legacy_protocol.codec import (
+from legacy_protocol.codec import Decoded, decode, encode
+from legacy_protocol.messages import (
     UNCHANGED,
     AckResult,
     CommandAck,
-    Decoded,
     Estimator,
     Gps,
     Imu,
@@ -38,11 +38,10 @@ from legacy_protocol.codec import (
     SetThreadParams,
     Stop,
     ThreadStatus,
-    decode,
-    encode,
 )
-from legacy_protocol.monitor_app import ConfirmScreen, Led, MonitorApp
+from legacy_protocol.monitor_app import MonitorApp
 from legacy_protocol.monitor_link import CommandSender, LinkError, MonitorLink
+from legacy_protocol.monitor_widgets import ConfirmScreen, Led
 
 REPO = Path(__file__).resolve().parents[1]
 WAIT_S = 5.0

@@ -30,7 +30,7 @@ from companion.sim.camera import (
 )
 from companion.watchdog import RuntimeContext, ThreadManager
 from horizon.camera import CameraModel
-from legacy_protocol import codec
+from legacy_protocol import codec, messages
 from legacy_protocol.adapter import LegacyAdapter
 
 R = math.radians
@@ -167,10 +167,10 @@ def test_the_datagram_is_the_legacy_horizon_attitude_and_decodes() -> None:
         data, _ = rx.recvfrom(2048)
         decoded = codec.decode(data)
         assert isinstance(decoded, codec.Decoded)
-        assert decoded.header.type_code == codec.MsgType.HORIZON_ATTITUDE
+        assert decoded.header.type_code == messages.MsgType.HORIZON_ATTITUDE
         assert decoded.header.vehicle_id == 7 and len(data) == 36
         p = decoded.payload
-        assert isinstance(p, codec.HorizonAttitude)
+        assert isinstance(p, messages.HorizonAttitude)
         assert p.frame_t_ns == 1_700_000_000_123_456_789
         assert math.isclose(p.roll_rad, r.roll_rad, abs_tol=1e-6)
         assert math.isclose(p.pitch_rad, r.pitch_rad, abs_tol=1e-6)
@@ -252,7 +252,7 @@ def test_the_camera_thread_hands_off_no_earlier_than_the_latency() -> None:
             except TimeoutError:
                 break
             d = codec.decode(data)
-            assert isinstance(d, codec.Decoded) and isinstance(d.payload, codec.HorizonAttitude)
+            assert isinstance(d, codec.Decoded) and isinstance(d.payload, messages.HorizonAttitude)
             ages.append((d.header.t_ns - d.payload.frame_t_ns) / 1e9)
     finally:
         rx.close()

@@ -8,7 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from companion.drivers.gps_protocol import GpsSolution, NmeaDecoder
+from companion.drivers.gps_protocol import NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast, ImuSlow
 from companion.drivers.servo_protocol import (
     PilotDecoder,

@@ -14,7 +14,8 @@ from typing import Any
 
 from companion.core.params import ParamSpec, int_param
 from companion.core.state import GpsFix
-from companion.drivers.gps_protocol import GpsSolution, NmeaDecoder
+from companion.drivers.gps_protocol import NmeaDecoder
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.serial_device import SerialDevice
 from companion.logs.layout import RecordLayout
 from companion.watchdog.task import Task

@@ -22,7 +22,7 @@ from typing import Any
 from companion.core.clock import Clock
 from companion.core.config import DeviceConfig
 from companion.core.params import ParamRegistry
-from companion.drivers.gps_protocol import GpsSolution
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import ImuFast, ImuSlow
 from companion.drivers.serial_device import SerialDevice
 from companion.drivers.servo_protocol import PilotFrame

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 from companion.core.mathutil import clamp
-from companion.drivers.gps_protocol import DEFAULT_SENTENCES, TALKERS, GpsSolution, encode_epoch
+from companion.drivers.gps_encoder import encode_epoch
+from companion.drivers.gps_solution import GpsSolution
 from companion.drivers.imu_protocol import (
     CYCLE_FRAMES,
     STATUS_ACCEL_OK,
@@ -34,6 +35,7 @@ from companion.drivers.imu_protocol import (
     encode_slow_block,
     slow_block_words,
 )
+from companion.drivers.nmea_sentences import DEFAULT_SENTENCES, TALKERS
 from companion.drivers.servo_protocol import (
     CH_MODE,
     CHANNELS,

@@ -14,9 +14,6 @@ Restart policy uses Erlang/OTP's terms: restart type per thread, and an intensit
 `MGR_RST_INTENS` restarts within `MGR_RST_PER_S`) beyond which the thread is marked failed and
 left down while the others keep running, or, for a thread whose row says `escalate`, the whole
 runtime stops with EXIT_ESCALATED for its service manager to restart (MGR_ESCALATE).
-
-Size: one class holding one state machine (start, check, restart, stop, suspend), with its
-parameters and rules; split over files it would be harder to read, not easier.
 """
 
 from __future__ import annotations
