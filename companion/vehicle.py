@@ -66,9 +66,11 @@ class Row:
     def build(self, settings: DeviceConfig | None = None) -> ManagedThread:
         """The row's thread, built by its class from the row and the device's settings."""
         cls = self.task.thread_class()
-        if self.device is not None:
-            return cls.from_row(self.task, settings or self.device)
-        return cls.from_row(self.task, None)
+        thread = cls.from_row(self.task, settings or self.device if self.device else None)
+        if not isinstance(thread, ManagedThread):
+            raise TypeError(f"row {self.name}: {self.task.implementation} built a "
+                            f"{type(thread).__name__}, not a ManagedThread")
+        return thread
 
 
 @dataclass(frozen=True)

@@ -143,16 +143,62 @@ def test_the_check_sees_a_wrong_import() -> None:
     assert layer_of("companion.sim.runner") > layer_of("companion.runtime")
 
 
-MAX_LINES = 500
+def test_no_module_imports_circle() -> None:
+    """No two modules reach each other through imports, type-only ones included: a cycle hides
+    which of the two owns the fact they share (break a type-only one with a Protocol in the
+    lower module)."""
+    modules = _modules()
+    graph = {mod: {t for t, _line in targets if not _is_package_of(t, mod)}
+             for mod, targets in _imports(modules).items()}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+    counter = [0]
+
+    def strongconnect(v: str) -> None:  # Tarjan's algorithm, iterative enough for ~300 modules
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                strongconnect(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            strongconnect(v)
+    assert not cycles, "modules that import each other (directly or around a loop): " + \
+        "; ".join(" <-> ".join(c) for c in cycles)
 
 
-def test_a_long_module_says_why_it_is_long() -> None:
-    """Small modules with one job; one that grows past the limit explains itself ("Size: ...")."""
-    long = []
-    for path in _modules().values():
-        text = path.read_text(encoding="utf-8")
-        if text.count("\n") > MAX_LINES:
-            doc = ast.get_docstring(ast.parse(text)) or ""
-            if "Size:" not in doc:
-                long.append(f"{path.relative_to(REPO)} ({text.count(chr(10))} lines)")
-    assert not long, f"modules over {MAX_LINES} lines without a reason in their docstring: {long}"
+def _is_package_of(target: str, mod: str) -> bool:
+    """`from pkg.sub import x` also names `pkg` (its __init__): a package's own __init__ that
+    re-exports its modules is not a cycle with them."""
+    return mod.startswith(target + ".")
+
+
+PRODUCT_MAX_LINES = 600
+
+
+def test_no_module_of_the_product_is_over_600_lines() -> None:
+    """Small modules with one job: a module that grows past 600 lines has more than one and is
+    split by job (bench/ and tests/ are not the product)."""
+    long = [f"{path.relative_to(REPO)} ({path.read_text(encoding='utf-8').count(chr(10))} lines)"
+            for path in _modules().values()
+            if path.read_text(encoding="utf-8").count("\n") > PRODUCT_MAX_LINES]
+    assert not long, f"modules over {PRODUCT_MAX_LINES} lines: {long}"

@@ -209,7 +209,7 @@ def test_a_start_refused_by_a_bad_key_file_leaves_no_empty_flight_directory(
 def test_the_legacy_wire_ids_are_the_tables_ids() -> None:
     """The legacy protocol's contract names the thesis aircraft's sources 1..5; the table is
     where those ids live, and the codec's enum is the contract's copy of them."""
-    from legacy_protocol.codec import ThreadId
+    from legacy_protocol.messages import ThreadId
 
     assert {t.name.lower(): int(t) for t in ThreadId} == {
         row.name: row.task.thread_id for row in VEHICLE}

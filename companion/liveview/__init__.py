@@ -7,11 +7,11 @@ paths in `companion.liveview.entities`. User documentation: docs/report.md.
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 from typing import Any
 
 from companion.core.config import Config
+from companion.core.lazy import lazy_exports
 
 # The rest is imported on first use (PEP 562): importing rerun opens sockets and takes time, and
 # `companion logs ...` commands that draw nothing should pay for neither.
@@ -29,11 +29,7 @@ _LAZY = {
 __all__ = ["live_view_bridges", *_LAZY]
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
 
 
 def live_view_bridges(cfg: Config) -> list[Any]:

@@ -11,8 +11,9 @@ a second) for commands that draw nothing.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from companion.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from companion.report.figures import FIGURES, FigureSpec, MissingData
@@ -46,13 +47,8 @@ _HOME = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    module = _HOME.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
+__getattr__, _dir = lazy_exports(__name__, {name: f"{__name__}.{module}"
+                                           for name, module in _HOME.items()})
 
 
 def __dir__() -> list[str]:

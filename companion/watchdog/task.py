@@ -17,15 +17,15 @@ from __future__ import annotations
 import dataclasses
 import enum
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from companion.core.lazy import load
 from companion.core.params import ParamSpec, int_param
 
 if TYPE_CHECKING:
-    from companion.watchdog.thread import ManagedThread
+    from companion.core.config import DeviceConfig
 
-__all__ = ["RestartType", "Task"]
+__all__ = ["RestartType", "Task", "ThreadClass"]
 
 PREFIX_MAX = 6
 """Parameter ids are at most 16 characters (MAVLink); a 6-letter prefix leaves 9 for the rest."""
@@ -37,6 +37,15 @@ class RestartType(enum.Enum):
     PERMANENT = "permanent"  # always restarted, even after a normal exit
     TRANSIENT = "transient"  # restarted after a crash or a stall, not after a normal exit
     TEMPORARY = "temporary"  # never restarted
+
+
+class ThreadClass(Protocol):
+    """What a row asks of the class it names (a `ManagedThread` subclass), without this module
+    importing the thread module that imports it."""
+
+    def declare_params(self, prefix: str) -> list[ParamSpec]: ...
+
+    def from_row(self, task: Task, settings: DeviceConfig | None) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -116,12 +125,12 @@ class Task:
                       read_only=not self.switchable),
         ]
 
-    def thread_class(self) -> type[ManagedThread]:
+    def thread_class(self) -> ThreadClass:
         """The implementing class, imported on demand (the table itself imports nothing)."""
         if not self.implementation:
             raise LookupError(f"task {self.name} names no implementing class")
         try:
-            cls: type[ManagedThread] = load(self.implementation)
+            cls: ThreadClass = load(self.implementation)
         except LookupError as exc:
             raise LookupError(f"task {self.name}: {exc}") from exc
         return cls
