@@ -35,7 +35,7 @@ from typing import Any
 from companion.core.osthread import set_native_name
 from companion.logs.convert import csv_header, csv_name, format_time, marker_line
 from companion.logs.formats import FormatSpec, parse_format
-from companion.logs.reader import column_names, framed_length
+from companion.logs.framing import framed_length
 from companion.logs.records import (
     ARRAY,
     BEGIN,
@@ -52,6 +52,7 @@ from companion.logs.records import (
     encode_marker,
     split_time_ns,
 )
+from companion.logs.streams import column_names
 
 __all__ = ["LogService", "RawLog", "ThreadLog", "write_run_json"]
 
