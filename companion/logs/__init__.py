@@ -12,9 +12,10 @@ from companion.core.lazy import lazy_exports
 if TYPE_CHECKING:
     from companion.logs.convert import convert_file
     from companion.logs.formats import FormatError, FormatSpec, parse_format
+    from companion.logs.producers import RawLog, ThreadLog
     from companion.logs.reader import read_log, read_log_bytes
     from companion.logs.streams import Damage, LogFile, LogFormatError, Marker, Stream
-    from companion.logs.writer import LogService, RawLog, ThreadLog, write_run_json
+    from companion.logs.writer import LogService, write_run_json
 
 _EXPORTS = {
     "convert_file": "companion.logs.convert",
@@ -29,8 +30,8 @@ _EXPORTS = {
     "read_log": "companion.logs.reader",
     "read_log_bytes": "companion.logs.reader",
     "LogService": "companion.logs.writer",
-    "RawLog": "companion.logs.writer",
-    "ThreadLog": "companion.logs.writer",
+    "RawLog": "companion.logs.producers",
+    "ThreadLog": "companion.logs.producers",
     "write_run_json": "companion.logs.writer",
 }
 
