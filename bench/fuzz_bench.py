@@ -324,6 +324,13 @@ def _legacy_target(tm: ModuleType) -> Target:
                   note="codec.decode/encode, then monitor Fleet.apply")
 
 
+# the log reader and the modules it reads with (framing, definitions, damage, decoding)
+LOG_READER_MODULES = [
+    "companion/logs/reader.py", "companion/logs/framing.py", "companion/logs/versions.py",
+    "companion/logs/resync.py", "companion/logs/decode.py",
+]
+
+
 def _log_reader_target(tm: ModuleType, work: Path) -> Target:
     from companion.logs import read_log
 
@@ -342,7 +349,7 @@ def _log_reader_target(tm: ModuleType, work: Path) -> Target:
         path.write_bytes(data)
         read_log(path, salvage=True)  # the file entry point never raises when salvaging
 
-    return Target("log-reader", ["companion/logs/reader.py"], strategy, run,
+    return Target("log-reader", LOG_READER_MODULES, strategy, run,
                   note="mutated LogService files and random bytes")
 
 
@@ -706,7 +713,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
 ALL_MODULES = [
     "companion/drivers/imu_protocol.py", "companion/drivers/servo_protocol.py",
     *GPS_MODULES, "legacy_protocol/codec.py", "legacy_protocol/messages.py",
-    "companion/logs/reader.py",
+    *LOG_READER_MODULES,
     "companion/core/config.py", "companion/core/params.py", "gcs_bridge/dispatch.py",
     "gcs_bridge/services.py", "gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py",
     "gcs_bridge/commands.py", "gcs_bridge/ftp.py", "gcs_bridge/logserver.py",

@@ -55,7 +55,7 @@ def fly(root: Path, seconds: float) -> Path:
 
 def _records(buf: bytes) -> list[tuple[int, int]]:
     """(start, end) of every record of a whole log (the reader's framing pass)."""
-    from companion.logs.reader import _scan
+    from companion.logs.framing import _scan
 
     offs, stop, _ = _scan(buf, 0, len(buf))
     starts = list(offs)

@@ -27,7 +27,8 @@ from gcs_bridge.dialect import crc_extra_of, mavlink
 from gcs_bridge.signing import SIGNATURE_LEN
 
 if TYPE_CHECKING:
-    from companion.logs.writer import LogService, RawLog
+    from companion.logs.producers import RawLog
+    from companion.logs.writer import LogService
 
 log = logging.getLogger(__name__)
 

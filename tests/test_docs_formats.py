@@ -21,7 +21,8 @@ from conftest import data_file
 from companion.logs import records
 from companion.logs.convert import convert_file
 from companion.logs.formats import FormatError, parse_format
-from companion.logs.reader import framed_length, read_log_bytes
+from companion.logs.framing import framed_length
+from companion.logs.reader import read_log_bytes
 from legacy_protocol import codec, messages
 
 REPO = Path(__file__).resolve().parent.parent

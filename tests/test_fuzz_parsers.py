@@ -75,7 +75,8 @@ from companion.drivers.servo_protocol import (
     encode_command,
     encode_pilot,
 )
-from companion.logs.reader import LogFormatError, read_log_bytes
+from companion.logs.reader import read_log_bytes
+from companion.logs.streams import LogFormatError
 from companion.logs.writer import LogService
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink

@@ -15,7 +15,8 @@ import pytest
 
 from companion.logs import cli
 from companion.logs.formats import parse_format
-from companion.logs.reader import LogFormatError, _Parser, _scan, read_log_bytes
+from companion.logs.framing import _scan
+from companion.logs.reader import _Parser, read_log_bytes
 from companion.logs.records import (
     BEGIN,
     END,
@@ -25,6 +26,7 @@ from companion.logs.records import (
     encode_definition,
     encode_marker,
 )
+from companion.logs.streams import LogFormatError
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000 * 10**9

@@ -14,7 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.logs.formats import parse_format
-from companion.logs.reader import LogFormatError, framed_length, read_log, read_log_bytes
+from companion.logs.framing import framed_length
+from companion.logs.reader import read_log, read_log_bytes
 from companion.logs.records import (
     ARRAY,
     ARRAY_ALT,
@@ -26,6 +27,7 @@ from companion.logs.records import (
     encode_definition,
     encode_marker,
 )
+from companion.logs.streams import LogFormatError
 
 VECTORS = data_file("vectors", "log-example.bin").parent
 T0 = 1_700_000_000 * 10**9

@@ -12,9 +12,11 @@ from unittest import mock
 import numpy as np
 import pytest
 
-from companion.logs import reader
+from companion.logs import framing, reader
+from companion.logs.decode import _gather_elements
 from companion.logs.formats import parse_format
-from companion.logs.reader import LogFormatError, _frame, _gather_elements, _headers, _Parser
+from companion.logs.framing import _headers, frame
+from companion.logs.reader import _Parser
 from companion.logs.records import (
     ARRAY_ALT,
     BEGIN,
@@ -25,6 +27,7 @@ from companion.logs.records import (
     encode_definition,
     encode_marker,
 )
+from companion.logs.streams import LogFormatError
 
 T0 = 1_700_000_000 * 10**9
 ANY = mock.ANY
@@ -109,7 +112,7 @@ def test_keyed_check_agrees_with_the_per_record_check(monkeypatch: pytest.Monkey
                                                       redefine: bool, alt: bool,
                                                       formats: int) -> None:
     buf, offsets = make_log(12_000, redefine=redefine, alt=alt, formats=formats)
-    assert len(buf) > 4 * reader._FAST_MIN
+    assert len(buf) > 4 * framing._FAST_MIN
     inputs = [buf, *damaged(buf, offsets)]
     keyed = [read(b, salvage) for b in inputs for salvage in (False, True)]
     monkeypatch.setattr(reader, "_KEYED_MIN", 1 << 62)  # every stretch checked record by record
@@ -151,7 +154,7 @@ def test_headers_handed_over_by_the_fast_walks_are_the_file_bytes(raw: int | Non
         buf = b"".join(parts)
     arr = np.frombuffer(buf, dtype=np.uint8)
     for fast in (True, False):
-        offs, words, stop, reason = _frame(buf, 0, len(buf), fast=fast)
+        offs, words, stop, reason = frame(buf, 0, len(buf), fast=fast)
         assert (stop, reason) == (len(buf), "eof")
         assert words.dtype == np.dtype("<u4") and words.shape == offs.shape
         assert np.array_equal(words, _headers(arr, offs))

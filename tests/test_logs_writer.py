@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import companion.logs.writer as writer_mod
+import companion.logs.sinks as sinks_mod
 from companion.logs.convert import convert_file
 from companion.logs.reader import read_log
 from companion.logs.writer import LogService, write_run_json
@@ -144,13 +144,13 @@ def test_stalled_disk_never_blocks_producers(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     release = threading.Event()
-    real = writer_mod._write_all
+    real = sinks_mod._write_all
 
     def stalled(fd: int, data: bytes) -> int:
         release.wait(10)
         return real(fd, data)
 
-    monkeypatch.setattr(writer_mod, "_write_all", stalled)
+    monkeypatch.setattr(sinks_mod, "_write_all", stalled)
     svc = LogService(tmp_path, capacity_records=1000, flush_period_ms=5, clock_ns=FakeClock())
     svc.start()
     lg = svc.open("slow")
@@ -213,7 +213,7 @@ def test_io_error_turns_logging_off(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     def broken(fd: int, data: bytes) -> int:
         raise OSError(errno.EIO, "Input/output error")
 
-    monkeypatch.setattr(writer_mod, "_write_all", broken)
+    monkeypatch.setattr(sinks_mod, "_write_all", broken)
     with LogService(tmp_path, flush_period_ms=5, clock_ns=FakeClock()) as svc:
         lg = svc.open("eio")
         lg.define(1, "%d", ["n"])
@@ -407,7 +407,7 @@ def test_close_waits_for_a_slow_disk_that_still_makes_progress(tmp_path: Path,
                                                                ) -> None:
     """Every write takes 0.15 s, eight files need 1.2 s: longer than the close's 0.5 s of
     patience, but each write is progress, so every record reaches the disk."""
-    real = writer_mod._write_all
+    real = sinks_mod._write_all
 
     def slow(fd: int, data: bytes) -> int:
         time.sleep(0.15)
@@ -415,7 +415,7 @@ def test_close_waits_for_a_slow_disk_that_still_makes_progress(tmp_path: Path,
 
     svc = LogService(tmp_path, clock_ns=FakeClock())
     _log_many(svc, 8, 50)
-    monkeypatch.setattr(writer_mod, "_write_all", slow)
+    monkeypatch.setattr(sinks_mod, "_write_all", slow)
     svc.start()
     svc.close(timeout_s=0.5, max_s=20.0)
     stats = svc.stats()
@@ -428,7 +428,7 @@ def test_close_gives_up_on_a_hung_disk_and_counts_what_it_lost(tmp_path: Path,
                                                               monkeypatch: pytest.MonkeyPatch
                                                               ) -> None:
     release = threading.Event()
-    real = writer_mod._write_all
+    real = sinks_mod._write_all
 
     def hung(fd: int, data: bytes) -> int:
         release.wait(10.0)
@@ -436,7 +436,7 @@ def test_close_gives_up_on_a_hung_disk_and_counts_what_it_lost(tmp_path: Path,
 
     svc = LogService(tmp_path, clock_ns=FakeClock())
     _log_many(svc, 3, 20)  # 3 x (comment, definition, 20 records)
-    monkeypatch.setattr(writer_mod, "_write_all", hung)
+    monkeypatch.setattr(sinks_mod, "_write_all", hung)
     svc.start()
     try:
         t0 = time.monotonic()

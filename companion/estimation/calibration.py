@@ -104,7 +104,8 @@ def learnt_from_log(path: str | os.PathLike[str]) -> GyroCalibration:
     covers less than ``MIN_FLIGHT_S`` of estimator time, or its values are not finite.
     """
     from companion.estimation.thread import CAL_COLUMNS, FMT_CAL
-    from companion.logs.reader import LogFormatError, read_log
+    from companion.logs.reader import read_log
+    from companion.logs.streams import LogFormatError
 
     p = os.fspath(path)
     if os.path.isdir(p):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.logs import LogFormatError, read_log_bytes
-from companion.logs.reader import framed_length
+from companion.logs.framing import framed_length
 from companion.report.headers import definition_records
 
 __all__ = ["LogTail"]

@@ -12,32 +12,26 @@ from companion.core.lazy import lazy_exports
 if TYPE_CHECKING:
     from companion.logs.convert import convert_file
     from companion.logs.formats import FormatError, FormatSpec, parse_format
-    from companion.logs.reader import (
-        Damage,
-        LogFile,
-        LogFormatError,
-        Marker,
-        Stream,
-        read_log,
-        read_log_bytes,
-    )
-    from companion.logs.writer import LogService, RawLog, ThreadLog, write_run_json
+    from companion.logs.producers import RawLog, ThreadLog
+    from companion.logs.reader import read_log, read_log_bytes
+    from companion.logs.streams import Damage, LogFile, LogFormatError, Marker, Stream
+    from companion.logs.writer import LogService, write_run_json
 
 _EXPORTS = {
     "convert_file": "companion.logs.convert",
     "FormatError": "companion.logs.formats",
     "FormatSpec": "companion.logs.formats",
     "parse_format": "companion.logs.formats",
-    "Damage": "companion.logs.reader",
-    "LogFile": "companion.logs.reader",
-    "LogFormatError": "companion.logs.reader",
-    "Marker": "companion.logs.reader",
-    "Stream": "companion.logs.reader",
+    "Damage": "companion.logs.streams",
+    "LogFile": "companion.logs.streams",
+    "LogFormatError": "companion.logs.streams",
+    "Marker": "companion.logs.streams",
+    "Stream": "companion.logs.streams",
     "read_log": "companion.logs.reader",
     "read_log_bytes": "companion.logs.reader",
     "LogService": "companion.logs.writer",
-    "RawLog": "companion.logs.writer",
-    "ThreadLog": "companion.logs.writer",
+    "RawLog": "companion.logs.producers",
+    "ThreadLog": "companion.logs.producers",
     "write_run_json": "companion.logs.writer",
 }
 

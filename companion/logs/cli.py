@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 # The main CLI imports this module to build its parser for every `companion ...` command, so
 # the libraries a command needs are imported in the command (docs/architecture.md).
 if TYPE_CHECKING:
-    from companion.logs.reader import LogFile
+    from companion.logs.streams import LogFile
 
 __all__ = ["add_commands", "flight_of_archive", "main"]
 
@@ -115,7 +115,8 @@ def _log_inputs(paths: list[Path]) -> tuple[list[Path], bool]:
 
 
 def _read(path: Path, salvage: bool) -> LogFile | None:
-    from companion.logs.reader import LogFormatError, read_log
+    from companion.logs.reader import read_log
+    from companion.logs.streams import LogFormatError
 
     try:
         lf = read_log(path, salvage=salvage)

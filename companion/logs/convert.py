@@ -21,7 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from companion.logs.formats import FormatSpec
-from companion.logs.reader import LogFile, Marker, Stream, read_log
+from companion.logs.reader import read_log
+from companion.logs.records import NS_PER_S
+from companion.logs.streams import LogFile, Marker, Stream
 
 __all__ = [
     "BATCH_RECORDS",
@@ -36,7 +38,6 @@ __all__ = [
 ]
 
 BATCH_RECORDS = 65536  # records rendered per batch: bounds the memory of a conversion
-_NS = 1_000_000_000
 
 Progress = Callable[[int, int], None]
 
@@ -44,7 +45,7 @@ Progress = Callable[[int, int], None]
 def format_time(t_ns: int) -> str:
     """Seconds with 9 decimals, exact (``tv_sec + tv_nsec/1e9`` without float rounding)."""
     sign = "-" if t_ns < 0 else ""
-    sec, nsec = divmod(abs(t_ns), _NS)
+    sec, nsec = divmod(abs(t_ns), NS_PER_S)
     return f"{sign}{sec}.{nsec:09d}"
 
 
@@ -88,7 +89,7 @@ def render_block_lines(
     end = _line_end(spec)
     t = np.asarray(time_ns, dtype=np.int64)
     if t.size and int(t.min()) >= 0:
-        sec, nsec = np.divmod(t, _NS)
+        sec, nsec = np.divmod(t, NS_PER_S)
         line = "%d.%09d," + template + end
         return [line % row for row in zip(sec.tolist(), nsec.tolist(), *lists, strict=True)]
     times = [format_time(v) for v in t.tolist()]

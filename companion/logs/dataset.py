@@ -45,7 +45,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from companion.logs.convert import csv_name, input_files
-from companion.logs.reader import LogFile, LogFormatError, Stream, read_log
+from companion.logs.reader import read_log
+from companion.logs.records import NS_PER_S
+from companion.logs.streams import LogFile, LogFormatError, Stream
 
 if TYPE_CHECKING:
     import duckdb
@@ -66,7 +68,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-_NS = 1_000_000_000
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9.+-]")  # hive values: no '=', '/', '%', spaces or '_'-start
 _VEHICLE_SUFFIX = re.compile(r"-v(\d+)$")  # `companion sim --vehicles K` names: <time>-v<k>
 _HIVE_TYPES = "{'vehicle': BIGINT, 'flight': VARCHAR, 'stream': VARCHAR}"
@@ -205,7 +206,7 @@ def _start(run: dict[str, Any] | None, logs: dict[str, LogFile]) -> tuple[dateti
              for t in (int(s.time_ns.min()), int(s.time_ns.max()))]
     times += [m.time_ns for lf in logs.values() for m in lf.markers]
     t0 = min(begins) if begins else min(times, default=0)
-    duration_s = (max(times) - t0) / _NS if times else 0.0
+    duration_s = (max(times) - t0) / NS_PER_S if times else 0.0
     start = None
     if run and isinstance(run.get("started_utc"), str):
         try:
@@ -213,7 +214,7 @@ def _start(run: dict[str, Any] | None, logs: dict[str, LogFile]) -> tuple[dateti
         except ValueError:
             start = None
     if start is None and (begins or times):
-        start = datetime.fromtimestamp(t0 / _NS, tz=UTC)
+        start = datetime.fromtimestamp(t0 / NS_PER_S, tz=UTC)
     return start, duration_s
 
 

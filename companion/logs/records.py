@@ -24,6 +24,7 @@ __all__ = [
     "HEADER_SIZE",
     "KNOWN_TYPES",
     "MAX_BODY",
+    "NS_PER_S",
     "TIMED_HEADER",
     "TIMED_SIZE",
     "TYPE_NAMES",
@@ -61,16 +62,16 @@ HEADER_SIZE = HEADER.size  # 4
 TIMED_SIZE = TIMED_HEADER.size  # 12
 MAX_BODY = 0xFFFF  # the length field is a uint16
 
-_NS = 1_000_000_000
+NS_PER_S = 1_000_000_000  # nanoseconds per second: the TIME field's second part
 
 
 def split_time_ns(t_ns: int) -> tuple[int, int]:
     """(tv_sec, tv_nsec) of a CLOCK_REALTIME time in ns; tv_nsec is always 0..999,999,999."""
-    return divmod(t_ns, _NS)
+    return divmod(t_ns, NS_PER_S)
 
 
 def join_time_ns(tv_sec: int, tv_nsec: int) -> int:
-    return tv_sec * _NS + tv_nsec
+    return tv_sec * NS_PER_S + tv_nsec
 
 
 def encode_marker(record_type: int, t_ns: int) -> bytes:
@@ -129,5 +130,5 @@ class DataPacker:
 
     def pack(self, t_ns: int, values: Sequence[int | float]) -> bytes:
         """Raises struct.error when a value does not fit its field."""
-        sec, nsec = divmod(t_ns, _NS)
+        sec, nsec = divmod(t_ns, NS_PER_S)
         return self._pack(DATA, self.index, self.spec.size, sec, nsec, *values)
