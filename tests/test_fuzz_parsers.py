@@ -78,6 +78,7 @@ from companion.drivers.servo_protocol import (
 from companion.logs.reader import read_log_bytes
 from companion.logs.streams import LogFormatError
 from companion.logs.writer import LogService
+from companion.vehicle import load_vehicle_config
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.signing import SignatureChecker, signing_timestamp
@@ -830,14 +831,14 @@ def test_config_toml_ish_text_gives_config_or_config_error(tmp_path: Path, text:
     path = tmp_path / "fuzz.toml"
     path.write_text(text, encoding="utf-8")
     try:
-        cfg = load_config(path)
+        cfg = load_vehicle_config(path)
     except ConfigError as exc:
         _check_config_error(exc, path, text)
         return
+    assert set(cfg.devices) == {"imu", "gps", "servo"}  # the vehicle's, never another name
     for section in fields(cfg):
         obj = getattr(cfg, section.name)
-        for sub in [obj, *(getattr(obj, f.name) for f in fields(obj)
-                           if hasattr(getattr(obj, f.name), "__dataclass_fields__"))]:
+        for sub in (list(obj.values()) if isinstance(obj, dict) else [obj]):
             for f in fields(sub):
                 value = getattr(sub, f.name)
                 want = _EXPECTED_TYPES.get(f.name)
