@@ -429,7 +429,7 @@ class _Bridge:
     flight directory to list, download and serve over FTP."""
 
     def __init__(self, tm: ModuleType, work: Path) -> None:
-        from gcs_bridge.testing import SyntheticVehicle
+        from support.synthetic_vehicle import SyntheticVehicle
 
         flights = work / "flights"
         flight = flights / "20260101T000000Z"

@@ -37,7 +37,9 @@ from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import param_codec
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

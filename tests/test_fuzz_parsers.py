@@ -29,6 +29,7 @@ import pytest
 from conftest import free_udp_port, wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.config import (
     Config,
@@ -83,7 +84,6 @@ from companion.logs.writer import LogService
 from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.signing import SignatureChecker, signing_timestamp
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 from legacy_protocol import codec
 from legacy_protocol.monitor_link import Fleet, Received
 

@@ -1,6 +1,6 @@
 """Identity, telemetry rates and commands with a raw MAVLink client, against a SyntheticVehicle.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -19,11 +19,11 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from gcs_bridge import ftp
 from gcs_bridge.commands import CMD_RESTART_THREAD
 from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 
 NAN = float("nan")
 

@@ -11,6 +11,7 @@ from typing import Any
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support.synthetic_vehicle import SyntheticSource
 
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, int_param
@@ -27,7 +28,6 @@ from gcs_bridge.console import (
 )
 from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import SyntheticSource
 
 SHELL = int(mavlink.SERIAL_CONTROL_DEV_SHELL)
 REPLY = int(mavlink.SERIAL_CONTROL_FLAG_REPLY)

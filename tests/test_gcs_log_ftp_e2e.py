@@ -4,7 +4,7 @@ The flight root holds two flights: an older finished one (a ~300 kB random imu.b
 text file) and the one being recorded (the vehicle's flight_dir, where the bridge's tlog grows).
 MAVProxy 1.8.75 runs as a separate process (driver shared with test_gcs_mavproxy.py); the error
 paths, the pacing and the abandonment of a download whose client vanished are checked with a
-minimal pymavlink ground station (`gcs_bridge.testing.MiniGcs`).
+minimal pymavlink ground station (`support.synthetic_vehicle.MiniGcs`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 # the MAVProxy driver (commands on stdin, output collected line by line) is shared
 from test_gcs_mavproxy import MavProxy
@@ -28,7 +29,6 @@ from gcs_bridge import ftp
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.link import PEER_SILENCE_S
 from gcs_bridge.logserver import ALL_BYTES, LOG_DATA_LEN
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 
 OLD = "20261123T100000Z"  # the finished flight
 CUR = "20261124T120000Z"  # the flight being recorded (the vehicle's flight_dir)

@@ -1,6 +1,6 @@
 """MAVLink 2 signing: writes must be signed, reads per link, refusals counted and never acted on.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -25,6 +25,7 @@ from typing import Any
 import pytest
 from conftest import free_udp_port, wait_for
 from pymavlink import mavutil
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.params import float_param
 from gcs_bridge import ftp, param_codec
@@ -38,7 +39,6 @@ from gcs_bridge.signing import (
     new_key_file,
     signing_timestamp,
 )
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 
 EXTRA = [float_param("TST_F", 1.5, -10.0, 10.0, "m", "a float")]
 

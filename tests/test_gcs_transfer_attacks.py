@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import SyntheticVehicle
 
 from companion.logs.archive import FlightArchive
 from gcs_bridge import bulk, ftp
@@ -32,7 +33,6 @@ from gcs_bridge.dialect import Message, mavlink
 from gcs_bridge.link import PEER_SILENCE_S, Link
 from gcs_bridge.logserver import ALL_BYTES, LOG_DATA_LEN
 from gcs_bridge.services import UNKNOWN_LOG_REPORT_S
-from gcs_bridge.testing import SyntheticVehicle
 
 OLD = "20261123T100000Z"
 CUR = "20261124T120000Z"
