@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from companion.logs.archive import FlightArchive
-from gcs_bridge.core import BRIDGE_PARAMS
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.link import RADIO_BULK_SHARE
 

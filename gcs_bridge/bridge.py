@@ -17,13 +17,14 @@ from typing import Any
 from companion.core.params import ParamSpec
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import status
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
-from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
 from gcs_bridge.metadata import ComponentMetadata
 from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.services import LinkServices
 from gcs_bridge.signing import LinkPolicy, read_key_file
 

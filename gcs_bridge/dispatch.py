@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING
 from companion.core.state import HorizonMeasurement
 from gcs_bridge import param_codec, status
 from gcs_bridge.commands import CommandHandler
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import Message, RxMessage, mavlink
 from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.runtime_view import BridgeCore
 
 if TYPE_CHECKING:
     from gcs_bridge.link import Link

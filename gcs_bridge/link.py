@@ -31,7 +31,6 @@ from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
 from gcs_bridge.bulk import BulkSender
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import (
     MSG_ID_COMPONENT_METADATA,
     MSG_ID_PROTOCOL_VERSION,
@@ -40,6 +39,7 @@ from gcs_bridge.dialect import (
 )
 from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.endpoints import Endpoint
+from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
 from gcs_bridge.streams import StreamScheduler, stream_for, streams_in_group
 from gcs_bridge.tlog import TlogWriter

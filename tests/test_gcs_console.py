@@ -17,6 +17,7 @@ from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, int_param
 from companion.watchdog import ManagerCommand, RuntimeContext, ThreadManager
 from gcs_bridge import console as console_mod
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.console import (
     BANNER,
     CALL_OUTPUT_MAX_BYTES,
@@ -26,8 +27,8 @@ from gcs_bridge.console import (
     TRUNCATED,
     Console,
 )
-from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.runtime_view import BridgeCore
 
 SHELL = int(mavlink.SERIAL_CONTROL_DEV_SHELL)
 REPLY = int(mavlink.SERIAL_CONTROL_FLAG_REPLY)
