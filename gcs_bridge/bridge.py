@@ -20,13 +20,18 @@ from gcs_bridge import status
 from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
 from gcs_bridge.dispatch import Dispatcher
-from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
 from gcs_bridge.metadata import ComponentMetadata
 from gcs_bridge.param_protocol import ParamProtocol
 from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.services import LinkServices
 from gcs_bridge.signing import LinkPolicy, read_key_file
+from gcs_bridge.transports.endpoints import (
+    DEFAULT_ENDPOINT,
+    Endpoint,
+    EndpointError,
+    parse_endpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +52,7 @@ class MavlinkBridge:
     """MAVLink 2 endpoints for one vehicle (see docs/ground-stations.md).
 
     `endpoints`: pymavlink connection strings, each optionally with `?` settings (see
-    `gcs_bridge.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
+    `gcs_bridge.transports.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
     given, writes must be signed on every link that does not say `signing=off`, and unsigned
     reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`) says so.
     `logging_control(start) -> error or None`: starts/stops the runtime's logs on

@@ -38,12 +38,12 @@ from gcs_bridge.dialect import (
     mavlink,
 )
 from gcs_bridge.dialect import Message as Msg
-from gcs_bridge.endpoints import Endpoint
 from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
 from gcs_bridge.streams import StreamScheduler, stream_for, streams_in_group
 from gcs_bridge.tlog import TlogWriter
-from gcs_bridge.transport import Transport, make_transport
+from gcs_bridge.transports.base import Transport, make_transport
+from gcs_bridge.transports.endpoints import Endpoint
 
 if TYPE_CHECKING:
     from companion.logs.writer import LogService
