@@ -690,7 +690,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
     return [
         Target("mavlink-dispatch", dispatch_modules, datagrams, run_dispatch, b.close,
                note="Link.receive -> Dispatcher -> handlers, answers drained"),
-        Target("param-protocol", ["gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py"],
+        Target("param-protocol", ["gcs_bridge/params/protocol.py", "gcs_bridge/params/codec.py"],
                params_strategy, run_params),
         Target("commands", ["gcs_bridge/commands.py"], commands_strategy, run_commands),
         Target("ftp-server", ["gcs_bridge/ftp.py"], ftp_strategy, run_ftp),
@@ -702,7 +702,7 @@ ALL_MODULES = [
     "companion/drivers/imu_protocol.py", "companion/drivers/servo_protocol.py",
     "companion/drivers/gps_protocol.py", "legacy_protocol/codec.py", "companion/logs/reader.py",
     "companion/core/config.py", "companion/core/params.py", "gcs_bridge/dispatch.py",
-    "gcs_bridge/services.py", "gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py",
+    "gcs_bridge/services.py", "gcs_bridge/params/protocol.py", "gcs_bridge/params/codec.py",
     "gcs_bridge/commands.py", "gcs_bridge/ftp.py", "gcs_bridge/logserver.py",
 ]
 

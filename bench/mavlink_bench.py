@@ -34,9 +34,9 @@ import psutil
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, ParamSpec, float_param, int_param
 from companion.watchdog import RuntimeContext, ThreadManager
-from gcs_bridge import param_codec
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support
 from support.synthetic_vehicle import MiniGcs, SyntheticVehicle  # noqa: E402

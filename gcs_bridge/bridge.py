@@ -22,7 +22,7 @@ from gcs_bridge.commands import CommandHandler, LoggingControl
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
 from gcs_bridge.metadata import ComponentMetadata
-from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.params.protocol import ParamProtocol
 from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.services import LinkServices
 from gcs_bridge.signing import LinkPolicy, read_key_file

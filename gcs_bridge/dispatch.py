@@ -13,10 +13,11 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from companion.core.state import HorizonMeasurement
-from gcs_bridge import param_codec, status
+from gcs_bridge import status
 from gcs_bridge.commands import CommandHandler
 from gcs_bridge.dialect import Message, RxMessage, mavlink
-from gcs_bridge.param_protocol import ParamProtocol
+from gcs_bridge.params import codec as param_codec
+from gcs_bridge.params.protocol import ParamProtocol
 from gcs_bridge.runtime_view import BridgeCore
 
 if TYPE_CHECKING:

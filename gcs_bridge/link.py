@@ -48,7 +48,7 @@ from gcs_bridge.transports.endpoints import Endpoint
 if TYPE_CHECKING:
     from companion.logs.writer import LogService
     from gcs_bridge.dispatch import Dispatcher
-    from gcs_bridge.param_protocol import ParamProtocol
+    from gcs_bridge.params.protocol import ParamProtocol
     from gcs_bridge.services import LinkServices
 
 log = logging.getLogger(__name__)

@@ -81,8 +81,8 @@ from companion.drivers.servo_protocol import (
 )
 from companion.logs.reader import LogFormatError, read_log_bytes
 from companion.logs.writer import LogService
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 from gcs_bridge.signing import SignatureChecker, signing_timestamp
 from legacy_protocol import codec
 from legacy_protocol.monitor_link import Fleet, Received

@@ -13,13 +13,13 @@ from pymavlink.generator.mavcrc import x25crc
 
 from companion.core.params import float_param, int_param
 from companion.logs import LogService
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import (
     MSG_ID_PROTOCOL_VERSION,
     ProtocolVersionMessage,
     crc_extra_of,
     mavlink,
 )
+from gcs_bridge.params import codec as param_codec
 from gcs_bridge.signing import (
     KeyFileError,
     SignatureChecker,

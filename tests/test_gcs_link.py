@@ -21,8 +21,8 @@ from conftest import free_tcp_port, free_udp_port, wait_for
 from pymavlink import mavutil
 from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 
 GCS_HB = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
                                            0, 0, 0, 3)

@@ -20,8 +20,8 @@ from conftest import free_udp_port, wait_for
 from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.params import ParamType, float_param, int_param, to_float32
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 
 EXTRA = [
     int_param("TST_BIG", 0, -(2**31), 2**31 - 1, "", "full int32 range"),

@@ -28,9 +28,10 @@ from pymavlink import mavutil
 from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.params import float_param
-from gcs_bridge import ftp, param_codec
+from gcs_bridge import ftp
 from gcs_bridge.commands import CMD_RESTART_THREAD
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 from gcs_bridge.signing import (
     NEW_STREAM_WINDOW,
     KeyFileError,
