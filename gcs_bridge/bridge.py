@@ -21,10 +21,10 @@ from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
-from gcs_bridge.metadata import ComponentMetadata
 from gcs_bridge.params.protocol import ParamProtocol
 from gcs_bridge.runtime_view import BridgeCore
-from gcs_bridge.services import LinkServices
+from gcs_bridge.services.link_services import LinkServices
+from gcs_bridge.services.metadata import ComponentMetadata
 from gcs_bridge.signing import LinkPolicy, read_key_file
 from gcs_bridge.transports.endpoints import (
     DEFAULT_ENDPOINT,

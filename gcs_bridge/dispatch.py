@@ -22,7 +22,7 @@ from gcs_bridge.runtime_view import BridgeCore
 
 if TYPE_CHECKING:
     from gcs_bridge.link import Link
-    from gcs_bridge.services import LinkServices
+    from gcs_bridge.services.link_services import LinkServices
 
 log = logging.getLogger(__name__)
 

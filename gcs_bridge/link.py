@@ -49,7 +49,7 @@ if TYPE_CHECKING:
     from companion.logs.writer import LogService
     from gcs_bridge.dispatch import Dispatcher
     from gcs_bridge.params.protocol import ParamProtocol
-    from gcs_bridge.services import LinkServices
+    from gcs_bridge.services.link_services import LinkServices
 
 log = logging.getLogger(__name__)
 

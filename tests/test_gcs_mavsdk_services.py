@@ -33,7 +33,7 @@ from test_gcs_mavsdk import mavsdk_on
 from companion.logs.archive import FlightArchive
 from companion.logs.cli import main as logs_main
 from companion.logs.writer import LogService
-from gcs_bridge.console import PROMPT
+from gcs_bridge.services.console import PROMPT
 
 OLD = "20261123T100000Z"
 CURRENT = "20261124T120000Z"

@@ -28,12 +28,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gcs_bridge import status
-from gcs_bridge.console import Console
 from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.dialect import RxMessage, mavlink
-from gcs_bridge.ftp import PAYLOAD_LEN, FtpServer
-from gcs_bridge.logserver import LogServer, first_log_id
-from gcs_bridge.metadata import ComponentMetadata
+from gcs_bridge.services.console import Console
+from gcs_bridge.services.ftp import FtpServer
+from gcs_bridge.services.ftp_wire import PAYLOAD_LEN
+from gcs_bridge.services.log_download import LogServer, first_log_id
+from gcs_bridge.services.metadata import ComponentMetadata
 
 if TYPE_CHECKING:
     from gcs_bridge.link import Link
