@@ -20,7 +20,8 @@ from gcs_bridge import status
 from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
 from gcs_bridge.dispatch import Dispatcher
-from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
+from gcs_bridge.link import Link
+from gcs_bridge.link_threads import LinkReceiver, LinkSender, receiver_task, sender_task
 from gcs_bridge.params.protocol import ParamProtocol
 from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.services.link_services import LinkServices
