@@ -59,6 +59,9 @@ for _p in (str(ROOT), str(TESTS)):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
+#: the MAVLink FTP server is three modules (wire format, served tree, sessions): measured together
+FTP_MODULES = ["gcs_bridge/services/ftp.py", "gcs_bridge/services/ftp_wire.py",
+               "gcs_bridge/services/ftp_tree.py"]
 SLOW_S = 1.0  # an input slower than this (twice) is a finding
 HARD_LIMIT_S = 10.0  # an input still running after this is interrupted: a hang
 DEFAULT_INPUTS = 3000
@@ -694,7 +697,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
         Target("param-protocol", ["gcs_bridge/params/protocol.py", "gcs_bridge/params/codec.py"],
                params_strategy, run_params),
         Target("commands", ["gcs_bridge/commands.py"], commands_strategy, run_commands),
-        Target("ftp-server", ["gcs_bridge/services/ftp.py"], ftp_strategy, run_ftp),
+        Target("ftp-server", FTP_MODULES, ftp_strategy, run_ftp),
         Target("log-server", ["gcs_bridge/services/log_download.py"], log_strategy, run_logserver),
     ]
 
@@ -703,8 +706,9 @@ ALL_MODULES = [
     "companion/drivers/imu_protocol.py", "companion/drivers/servo_protocol.py",
     "companion/drivers/gps_protocol.py", "legacy_protocol/codec.py", "companion/logs/reader.py",
     "companion/core/config.py", "companion/core/params.py", "gcs_bridge/dispatch.py",
-    "gcs_bridge/services/link_services.py", "gcs_bridge/params/protocol.py", "gcs_bridge/params/codec.py",
-    "gcs_bridge/commands.py", "gcs_bridge/services/ftp.py", "gcs_bridge/services/log_download.py",
+    "gcs_bridge/services/link_services.py", "gcs_bridge/params/protocol.py",
+    "gcs_bridge/params/codec.py", "gcs_bridge/commands.py", *FTP_MODULES,
+    "gcs_bridge/services/log_download.py",
 ]
 
 
