@@ -5,8 +5,9 @@ under one with --quick). Everything runs on this machine over loopback and pseud
 
 The vehicle is `support.synthetic_vehicle.SyntheticVehicle` (tests/support) recording flight
 ROOT/20261124T120000Z; an older flight ROOT/20261123T100000Z holds one random file (4 MB,
---quick 400 kB, over UDP; 40 kB over the radio). MAVProxy 1.8.75 (`--default-modules=log,ftp --streamrate=-1`, so it leaves the
-bridge's default telemetry schedule alone) fetches it, driven on stdin:
+--quick 400 kB, over UDP; 40 kB over the radio). MAVProxy 1.8.75
+(`--default-modules=log,ftp --streamrate=-1`, so it leaves the bridge's default telemetry
+schedule alone) fetches it, driven on stdin:
 
 1. over UDP loopback (`udpout:127.0.0.1:PORT?identity=px4`): `log download 0 FILE` (the old flight
    as the bridge's tar archive, checked byte for byte against `FlightArchive.snapshot(old)`) and

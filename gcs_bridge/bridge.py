@@ -53,9 +53,10 @@ class MavlinkBridge:
     """MAVLink 2 endpoints for one vehicle (see docs/ground-stations.md).
 
     `endpoints`: pymavlink connection strings, each optionally with `?` settings (see
-    `gcs_bridge.transports.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
-    given, writes must be signed on every link that does not say `signing=off`, and unsigned
-    reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`) says so.
+    `gcs_bridge.transports.endpoints`). `key_file`: signing passphrase file (`companion keys
+    new`); when given, writes must be signed on every link that does not say `signing=off`, and
+    unsigned reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`)
+    says so.
     `logging_control(start) -> error or None`: starts/stops the runtime's logs on
     MAV_CMD_LOGGING_START/STOP (the tlogs follow those commands in any case).
     """

@@ -356,7 +356,8 @@ class FtpServer:
                 raise Nak(ERR_EOF)
             session.last_used_s = self._clock_s()
             last = offset + len(data) >= session.size or len(data) < chunk
-            yield reply_payload(req, OP_ACK, data, offset=offset, seq_step=step, burst_complete=last)
+            yield reply_payload(req, OP_ACK, data, offset=offset, seq_step=step,
+                                burst_complete=last)
             if last:
                 return
             offset += len(data)
