@@ -59,6 +59,9 @@ for _p in (str(ROOT), str(TESTS)):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
+#: the MAVLink FTP server is three modules (wire format, served tree, sessions): measured together
+FTP_MODULES = ["gcs_bridge/services/ftp.py", "gcs_bridge/services/ftp_wire.py",
+               "gcs_bridge/services/ftp_tree.py"]
 SLOW_S = 1.0  # an input slower than this (twice) is a finding
 HARD_LIMIT_S = 10.0  # an input still running after this is interrupted: a hang
 DEFAULT_INPUTS = 3000
@@ -441,7 +444,7 @@ class _Bridge:
     flight directory to list, download and serve over FTP."""
 
     def __init__(self, tm: ModuleType, work: Path) -> None:
-        from gcs_bridge.testing import SyntheticVehicle
+        from support.synthetic_vehicle import SyntheticVehicle
 
         flights = work / "flights"
         flight = flights / "20260101T000000Z"
@@ -502,9 +505,10 @@ class _Bridge:
 
 
 def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
-    from gcs_bridge import ftp as ftp_mod
     from gcs_bridge.dialect import mavlink
-    from gcs_bridge.logserver import LogServer
+    from gcs_bridge.services import ftp as ftp_mod
+    from gcs_bridge.services import ftp_wire
+    from gcs_bridge.services.log_download import LogServer
 
     b = _Bridge(tm, work)
     names = b.names
@@ -602,12 +606,12 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
 
     # 4. the FTP server on request payloads (sequences, so sessions open, read and write)
     ftp_root = work / "ftp"
-    ops = [ftp_mod.OP_NONE, ftp_mod.OP_TERMINATE_SESSION, ftp_mod.OP_RESET_SESSIONS,
-           ftp_mod.OP_LIST_DIRECTORY, ftp_mod.OP_LIST_DIRECTORY_WITH_TIME, ftp_mod.OP_OPEN_FILE_RO,
-           ftp_mod.OP_READ_FILE, ftp_mod.OP_BURST_READ_FILE, ftp_mod.OP_CALC_FILE_CRC32,
-           ftp_mod.OP_CREATE_FILE, ftp_mod.OP_OPEN_FILE_WO, ftp_mod.OP_WRITE_FILE,
-           ftp_mod.OP_REMOVE_FILE, ftp_mod.OP_CREATE_DIRECTORY, ftp_mod.OP_REMOVE_DIRECTORY,
-           ftp_mod.OP_RENAME, ftp_mod.OP_TRUNCATE_FILE, ftp_mod.OP_ACK, ftp_mod.OP_NAK]
+    ops = [ftp_wire.OP_NONE, ftp_wire.OP_TERMINATE_SESSION, ftp_wire.OP_RESET_SESSIONS,
+           ftp_wire.OP_LIST_DIRECTORY, ftp_wire.OP_LIST_DIRECTORY_WITH_TIME, ftp_wire.OP_OPEN_FILE_RO,
+           ftp_wire.OP_READ_FILE, ftp_wire.OP_BURST_READ_FILE, ftp_wire.OP_CALC_FILE_CRC32,
+           ftp_wire.OP_CREATE_FILE, ftp_wire.OP_OPEN_FILE_WO, ftp_wire.OP_WRITE_FILE,
+           ftp_wire.OP_REMOVE_FILE, ftp_wire.OP_CREATE_DIRECTORY, ftp_wire.OP_REMOVE_DIRECTORY,
+           ftp_wire.OP_RENAME, ftp_wire.OP_TRUNCATE_FILE, ftp_wire.OP_ACK, ftp_wire.OP_NAK]
     path_bytes = st.one_of(
         st.sampled_from([b"", b"/", b".", b"..", b"/a.bin", b"a.bin", b"d", b"d/b.txt", b"/d/",
                          b"../x", b"/../../etc/passwd", b"d/../a.bin", b"new", b"d/new",
@@ -617,7 +621,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
     )
     request = st.builds(
         lambda seq, session, opcode, size, offset, data, cut: (
-            ftp_mod.HEADER.pack(seq, session, opcode, min(size, 255), 0, 0, 0, offset)
+            ftp_wire.HEADER.pack(seq, session, opcode, min(size, 255), 0, 0, 0, offset)
             + data)[:cut],
         st.integers(0, 0xFFFF), st.one_of(st.integers(0, 3), st.integers(0, 255)),
         st.one_of(st.sampled_from(ops), st.integers(0, 255)),
@@ -644,7 +648,7 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
                 for reply in server.handle(payload, may_write=may_write):
                     replies += 1
                     assert reply is None or (isinstance(reply, bytes)
-                                             and len(reply) == ftp_mod.PAYLOAD_LEN)
+                                             and len(reply) == ftp_wire.PAYLOAD_LEN)
                     assert replies < 10_000, "a request that never ends"
                 assert len(server._sessions) <= 4
                 assert all(len(q) <= 16 for q in server._answered.values())
@@ -698,15 +702,15 @@ def _mavlink_targets(tm: ModuleType, work: Path) -> list[Target]:
     log_strategy = st.tuples(run_json, st.sampled_from([0, 1]),
                              st.lists(log_request, min_size=1, max_size=5))
 
-    dispatch_modules = ["gcs_bridge/dispatch.py", "gcs_bridge/services.py"]
+    dispatch_modules = ["gcs_bridge/dispatch.py", "gcs_bridge/services/link_services.py"]
     return [
         Target("mavlink-dispatch", dispatch_modules, datagrams, run_dispatch, b.close,
                note="Link.receive -> Dispatcher -> handlers, answers drained"),
-        Target("param-protocol", ["gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py"],
+        Target("param-protocol", ["gcs_bridge/params/protocol.py", "gcs_bridge/params/codec.py"],
                params_strategy, run_params),
         Target("commands", ["gcs_bridge/commands.py"], commands_strategy, run_commands),
-        Target("ftp-server", ["gcs_bridge/ftp.py"], ftp_strategy, run_ftp),
-        Target("log-server", ["gcs_bridge/logserver.py"], log_strategy, run_logserver),
+        Target("ftp-server", FTP_MODULES, ftp_strategy, run_ftp),
+        Target("log-server", ["gcs_bridge/services/log_download.py"], log_strategy, run_logserver),
     ]
 
 
@@ -715,8 +719,9 @@ ALL_MODULES = [
     *GPS_MODULES, "legacy_protocol/codec.py", "legacy_protocol/messages.py",
     *LOG_READER_MODULES,
     "companion/core/config.py", "companion/core/params.py", "gcs_bridge/dispatch.py",
-    "gcs_bridge/services.py", "gcs_bridge/param_protocol.py", "gcs_bridge/param_codec.py",
-    "gcs_bridge/commands.py", "gcs_bridge/ftp.py", "gcs_bridge/logserver.py",
+    "gcs_bridge/services/link_services.py", "gcs_bridge/params/protocol.py",
+    "gcs_bridge/params/codec.py", "gcs_bridge/commands.py", *FTP_MODULES,
+    "gcs_bridge/services/log_download.py",
 ]
 
 

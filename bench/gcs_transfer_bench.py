@@ -3,10 +3,11 @@
 Run: `python bench/gcs_transfer_bench.py [--quick]` from the repository root (about 3 minutes,
 under one with --quick). Everything runs on this machine over loopback and pseudo-terminals.
 
-The vehicle is `gcs_bridge.testing.SyntheticVehicle` recording flight ROOT/20261124T120000Z; an
-older flight ROOT/20261123T100000Z holds one random file (4 MB, --quick 400 kB, over UDP; 40 kB
-over the radio). MAVProxy 1.8.75 (`--default-modules=log,ftp --streamrate=-1`, so it leaves the
-bridge's default telemetry schedule alone) fetches it, driven on stdin:
+The vehicle is `support.synthetic_vehicle.SyntheticVehicle` (tests/support) recording flight
+ROOT/20261124T120000Z; an older flight ROOT/20261123T100000Z holds one random file (4 MB,
+--quick 400 kB, over UDP; 40 kB over the radio). MAVProxy 1.8.75
+(`--default-modules=log,ftp --streamrate=-1`, so it leaves the bridge's default telemetry
+schedule alone) fetches it, driven on stdin:
 
 1. over UDP loopback (`udpout:127.0.0.1:PORT?identity=px4`): `log download 0 FILE` (the old flight
    as the bridge's tar archive, checked byte for byte against `FlightArchive.snapshot(old)`) and
@@ -47,13 +48,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from companion.logs.archive import FlightArchive
-from gcs_bridge.core import BRIDGE_PARAMS
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.link import RADIO_BULK_SHARE
-from gcs_bridge.testing import SyntheticVehicle
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support
 from serial_relay import SerialRelay  # noqa: E402
+from support.synthetic_vehicle import SyntheticVehicle  # noqa: E402
 
 MAVPROXY = Path(sys.executable).with_name("mavproxy.py")
 CURRENT = "20261124T120000Z"

@@ -35,10 +35,12 @@ from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, ParamSpec, float_param, int_param
 from companion.vehicle import VEHICLE
 from companion.watchdog import RuntimeContext, ThreadManager
-from gcs_bridge import param_codec
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+from gcs_bridge.params import codec as param_codec
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

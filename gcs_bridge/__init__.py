@@ -10,16 +10,21 @@ from companion.core.lazy import lazy_exports
 if TYPE_CHECKING:
     from gcs_bridge.bridge import MavlinkBridge
     from gcs_bridge.dialect import Identity
-    from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
     from gcs_bridge.signing import KeyFileError, new_key_file, read_key_file
+    from gcs_bridge.transports.endpoints import (
+        DEFAULT_ENDPOINT,
+        Endpoint,
+        EndpointError,
+        parse_endpoint,
+    )
 
 _EXPORTS = {
     "MavlinkBridge": "gcs_bridge.bridge",
     "Identity": "gcs_bridge.dialect",
-    "DEFAULT_ENDPOINT": "gcs_bridge.endpoints",
-    "Endpoint": "gcs_bridge.endpoints",
-    "EndpointError": "gcs_bridge.endpoints",
-    "parse_endpoint": "gcs_bridge.endpoints",
+    "DEFAULT_ENDPOINT": "gcs_bridge.transports.endpoints",
+    "Endpoint": "gcs_bridge.transports.endpoints",
+    "EndpointError": "gcs_bridge.transports.endpoints",
+    "parse_endpoint": "gcs_bridge.transports.endpoints",
     "KeyFileError": "gcs_bridge.signing",
     "new_key_file": "gcs_bridge.signing",
     "read_key_file": "gcs_bridge.signing",

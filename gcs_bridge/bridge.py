@@ -17,15 +17,22 @@ from typing import Any
 from companion.core.params import ParamSpec
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge import status
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
-from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
 from gcs_bridge.dispatch import Dispatcher
-from gcs_bridge.endpoints import DEFAULT_ENDPOINT, Endpoint, EndpointError, parse_endpoint
-from gcs_bridge.link import Link, LinkReceiver, LinkSender, receiver_task, sender_task
-from gcs_bridge.metadata import ComponentMetadata
-from gcs_bridge.param_protocol import ParamProtocol
-from gcs_bridge.services import LinkServices
+from gcs_bridge.link import Link
+from gcs_bridge.link_threads import LinkReceiver, LinkSender, receiver_task, sender_task
+from gcs_bridge.params.protocol import ParamProtocol
+from gcs_bridge.runtime_view import BridgeCore
+from gcs_bridge.services.link_services import LinkServices
+from gcs_bridge.services.metadata import ComponentMetadata
 from gcs_bridge.signing import LinkPolicy, read_key_file
+from gcs_bridge.transports.endpoints import (
+    DEFAULT_ENDPOINT,
+    Endpoint,
+    EndpointError,
+    parse_endpoint,
+)
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +53,10 @@ class MavlinkBridge:
     """MAVLink 2 endpoints for one vehicle (see docs/ground-stations.md).
 
     `endpoints`: pymavlink connection strings, each optionally with `?` settings (see
-    `gcs_bridge.endpoints`). `key_file`: signing passphrase file (`companion keys new`); when
-    given, writes must be signed on every link that does not say `signing=off`, and unsigned
-    reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`) says so.
+    `gcs_bridge.transports.endpoints`). `key_file`: signing passphrase file (`companion keys
+    new`); when given, writes must be signed on every link that does not say `signing=off`, and
+    unsigned reads are accepted where `allow_unsigned_reads` (or the link's `unsigned_reads=`)
+    says so.
     `logging_control(start) -> error or None`: starts/stops the runtime's logs on
     MAV_CMD_LOGGING_START/STOP (the tlogs follow those commands in any case).
     """

@@ -28,8 +28,8 @@ from typing import Any, Protocol
 
 from companion.watchdog import ManagerCommand
 from gcs_bridge import telemetry
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, Message, RxMessage, mavlink
+from gcs_bridge.runtime_view import BridgeCore
 
 log = logging.getLogger(__name__)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import struct
 from collections.abc import Sequence
 from typing import Any, ClassVar
@@ -50,6 +51,10 @@ __all__ = [
     "compute_crc_extra",
     "register_extra_messages",
     "wire_order",
+    "UINT16_MAX",
+    "INT16_MAX",
+    "clamp_int",
+    "nan_if_none",
 ]
 
 #: Component id of the bridge: MAVSDK only discovers an autopilot from a component-1 HEARTBEAT.
@@ -156,6 +161,27 @@ def message_id(name: str) -> int | None:
     """Message id of a MAVLink message name (upper case), or None when unknown."""
     return _ID_BY_NAME.get(name.upper())
 
+
+
+# ------------------------------------------------------------------------------ field values
+UINT16_MAX = 0xFFFF
+INT16_MAX = 0x7FFF
+
+
+def clamp_int(value: float | int | None, lo: int, hi: int, missing: int) -> int:
+    """An integer field value: `missing` for None/NaN, else rounded and clamped to [lo, hi]."""
+    if value is None:
+        return missing
+    v = float(value)
+    if math.isnan(v):
+        return missing
+    if math.isinf(v):
+        return hi if v > 0 else lo
+    return max(lo, min(hi, int(round(v))))
+
+
+def nan_if_none(value: float | None) -> float:
+    return float("nan") if value is None else float(value)
 
 # ----------------------------------------------------------- messages newer than pymavlink 2.4.50
 # COMPONENT_METADATA (QGroundControl and MAVSDK ask for it to find the parameter metadata),

@@ -3,6 +3,9 @@
 Runs in a link's receive thread, after the signing policy let the message through. Nothing is
 sent from here: answers are posted to the link's sender queue (or, for parameter changes, to
 every link by the registry's change notification).
+
+Calls go one way: the link calls the dispatcher, the dispatcher calls the link's services. The
+dispatcher sees the link only as `DispatchLink`, so nothing here imports `gcs_bridge.link`.
 """
 
 from __future__ import annotations
@@ -10,21 +13,37 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from companion.core.state import HorizonMeasurement
-from gcs_bridge import param_codec, status
-from gcs_bridge.commands import CommandHandler
-from gcs_bridge.core import BridgeCore
-from gcs_bridge.dialect import Message, RxMessage, mavlink
-from gcs_bridge.param_protocol import ParamProtocol
-
-if TYPE_CHECKING:
-    from gcs_bridge.link import Link
-    from gcs_bridge.services import LinkServices
+from gcs_bridge import status
+from gcs_bridge.commands import CommandHandler, CommandLink
+from gcs_bridge.dialect import Identity, Message, RxMessage, mavlink
+from gcs_bridge.params import codec as param_codec
+from gcs_bridge.params.protocol import ParamProtocol
+from gcs_bridge.runtime_view import BridgeCore
+from gcs_bridge.services.link_services import LinkServices
 
 log = logging.getLogger(__name__)
 
+
+class DispatchLink(CommandLink, Protocol):
+    """The link a message arrived on, as the handlers need it (`gcs_bridge.link.Link` is one):
+    the dispatcher is called by the link and answers through it without importing it."""
+
+    identity: Identity
+    text_ids: status.StatusTextIds
+    services: LinkServices
+
+    def post_param(self, index: int) -> bool: ...
+
+    def start_param_list(self) -> bool: ...
+
+    def note_peer(self, system: int, component: int, mav_type: int) -> None: ...
+
+    def data_stream(self, stream_id: int, rate_hz: int, start: bool) -> None: ...
+
+    def refuse(self, msg: RxMessage, why: str) -> None: ...
 
 
 class Dispatcher:
@@ -35,7 +54,7 @@ class Dispatcher:
         self.params = params
         self.commands = commands
         m = mavlink
-        self._handlers: dict[int, Callable[[Link, RxMessage], None]] = {
+        self._handlers: dict[int, Callable[[DispatchLink, RxMessage], None]] = {
             m.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
             m.MAVLINK_MSG_ID_PARAM_REQUEST_LIST: self._param_request_list,
             m.MAVLINK_MSG_ID_PARAM_REQUEST_READ: self._param_request_read,
@@ -60,7 +79,7 @@ class Dispatcher:
         # horizon attitude from the camera component, waiting for its HZN_QUAL companion
         self._pending_horizon: tuple[int, int, float, float] | None = None
 
-    def handle(self, link: Link, msg: RxMessage) -> None:
+    def handle(self, link: DispatchLink, msg: RxMessage) -> None:
         handler = self._handlers.get(msg.get_msgId())
         if handler is None:
             return
@@ -70,7 +89,7 @@ class Dispatcher:
             log.exception("link %d: handling %s failed", link.index, msg.get_type())
 
     # ------------------------------------------------------------------ horizon aiding
-    def _horizon_attitude(self, link: Link, msg: RxMessage) -> None:
+    def _horizon_attitude(self, link: DispatchLink, msg: RxMessage) -> None:
         """ATTITUDE from the camera component (100) is a horizon-detector estimate (see
         docs/horizon.md): roll and pitch only; its quality follows as NAMED_VALUE_FLOAT HZN_QUAL."""
         if msg.get_srcComponent() != mavlink.MAV_COMP_ID_CAMERA:
@@ -82,7 +101,7 @@ class Dispatcher:
             self._write_horizon(previous[1], previous[2], previous[3], 0.5)
         self._pending_horizon = (msg.time_boot_ms, self.core.now_real_ns(), msg.roll, msg.pitch)
 
-    def _horizon_quality(self, link: Link, msg: RxMessage) -> None:
+    def _horizon_quality(self, link: DispatchLink, msg: RxMessage) -> None:
         pending = self._pending_horizon
         if (pending is None or msg.get_srcComponent() != mavlink.MAV_COMP_ID_CAMERA
                 or msg.name.rstrip("\x00") != "HZN_QUAL" or msg.time_boot_ms != pending[0]):
@@ -106,14 +125,14 @@ class Dispatcher:
             max(-1, min(index, 32767)), error)
 
     # ------------------------------------------------------------------ handlers
-    def _heartbeat(self, link: Link, msg: RxMessage) -> None:
+    def _heartbeat(self, link: DispatchLink, msg: RxMessage) -> None:
         link.note_peer(msg.get_srcSystem(), msg.get_srcComponent(), msg.type)
 
-    def _param_request_list(self, link: Link, msg: RxMessage) -> None:
+    def _param_request_list(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
             link.start_param_list()
 
-    def _param_request_read(self, link: Link, msg: RxMessage) -> None:
+    def _param_request_read(self, link: DispatchLink, msg: RxMessage) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         index = self.params.lookup(msg.param_id, int(msg.param_index))
@@ -123,7 +142,7 @@ class Dispatcher:
             return
         link.post_param(index)
 
-    def _param_set(self, link: Link, msg: RxMessage) -> None:
+    def _param_set(self, link: DispatchLink, msg: RxMessage) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         raw = param_codec.raw_value_of(msg)
@@ -146,56 +165,56 @@ class Dispatcher:
         if outcome.index is not None:
             link.post_param(outcome.index)  # the unchanged value, as the protocol asks
 
-    def _command(self, link: Link, msg: RxMessage) -> None:
+    def _command(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
             self.commands.handle(link, msg)
 
-    def _request_data_stream(self, link: Link, msg: RxMessage) -> None:
+    def _request_data_stream(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
             link.data_stream(int(msg.req_stream_id), int(msg.req_message_rate),
                              bool(msg.start_stop))
 
-    def _ping(self, link: Link, msg: RxMessage) -> None:
+    def _ping(self, link: DispatchLink, msg: RxMessage) -> None:
         if msg.target_system == 0 and msg.target_component == 0:  # a request, not an answer
             link.post([mavlink.MAVLink_ping_message(msg.time_usec, msg.seq, msg.get_srcSystem(),
                                                     msg.get_srcComponent())])
 
-    def _timesync(self, link: Link, msg: RxMessage) -> None:
+    def _timesync(self, link: DispatchLink, msg: RxMessage) -> None:
         if msg.tc1 == 0:  # a request
             link.post([mavlink.MAVLink_timesync_message(self.core.now_real_ns(), msg.ts1)])
 
-    def _ftp(self, link: Link, msg: RxMessage) -> None:
+    def _ftp(self, link: DispatchLink, msg: RxMessage) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
         link.services.ftp_request(msg)
 
     def _log(self, pick: Callable[[LinkServices], Callable[[RxMessage], None]]
-             ) -> Callable[[Link, RxMessage], None]:
+             ) -> Callable[[DispatchLink, RxMessage], None]:
         """A LOG_* handler: addressed to us, then the link's log service."""
-        def handle(link: Link, msg: RxMessage) -> None:
+        def handle(link: DispatchLink, msg: RxMessage) -> None:
             if self._for_us(msg.target_system, msg.target_component):
                 pick(link.services)(msg)
         return handle
 
-    def _serial_control(self, link: Link, msg: RxMessage) -> None:
+    def _serial_control(self, link: DispatchLink, msg: RxMessage) -> None:
         # SERIAL_CONTROL has no target fields in pymavlink 2.4.50's common dialect: a console
         # message reaching this link is for this vehicle
         link.services.serial_control(msg)
 
-    def _mission_request_list(self, link: Link, msg: RxMessage) -> None:
+    def _mission_request_list(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
             # no mission service: an empty list ends the GCS's download at once
             link.post([mavlink.MAVLink_mission_count_message(
                 msg.get_srcSystem(), msg.get_srcComponent(), 0,
                 getattr(msg, "mission_type", 0))])
 
-    def _mission_upload(self, link: Link, msg: RxMessage) -> None:
+    def _mission_upload(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
             link.post([mavlink.MAVLink_mission_ack_message(
                 msg.get_srcSystem(), msg.get_srcComponent(), mavlink.MAV_MISSION_UNSUPPORTED,
                 getattr(msg, "mission_type", 0))])
 
-    def _setup_signing(self, link: Link, msg: RxMessage) -> None:
+    def _setup_signing(self, link: DispatchLink, msg: RxMessage) -> None:
         # the key comes from the key file only; a key sent over a link is never used nor
         # passed on (and never logged: see tlog)
         link.refuse(msg, "SETUP_SIGNING is not accepted over MAVLink")

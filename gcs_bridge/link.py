@@ -1,19 +1,18 @@
-"""One MAVLink link: its transport, its two managed threads, its queue, rates and tlog.
+"""One MAVLink link: its transport, its queue, rates, peers and tlog, shared by its two threads.
 
-The receive thread reads the transport, parses, applies the signing policy and dispatches;
-the send thread is the only one that writes to the transport. It is paced by its queue (answers
-posted by the receive thread, the thread manager and parameter changes) with a timeout set by
-the next telemetry stream due, so an answer leaves at once and telemetry leaves on time.
-Neither thread polls: each sleeps until there is work or a deadline, and at most a quarter of
-its watchdog period (`bounded_wait_s`), a clock duration turned into host seconds, so the
-watchdog sees cycles in each of its windows at any simulation speed.
+The receive thread (`gcs_bridge.link_threads`) reads the transport, parses, applies the signing
+policy and dispatches; the send thread is the only one that writes to the transport. It is paced
+by its queue (answers posted by the receive thread, the thread manager and parameter changes)
+with a timeout set by the next telemetry stream due, so an answer leaves at once and telemetry
+leaves on time.
+
+Calls go one way: the link calls the dispatcher (`gcs_bridge.dispatch`), which calls the link's
+services (`gcs_bridge.services`); neither imports this module, they see the link through the
+protocols they declare (`DispatchLink`, `ServiceLink`), which `Link` implements.
 
 Everything a link remembers between messages (rates set by ground stations, the parameter list
 in progress, the thread-status rotation) lives here rather than in the threads, so a thread
 restarted by the watchdog carries on where it stopped.
-
-Size: the link's shared state and its two thread classes belong together (the threads are thin
-shells over `Link`); the parsers, codecs and stream table already live in their own modules.
 """
 
 from __future__ import annotations
@@ -26,12 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from companion.core.clock import Clock
 from companion.core.sync import MessageQueue
-from companion.watchdog import ManagedThread, Task, ThreadStatus, WatchdogEvent
+from companion.watchdog import ThreadStatus, WatchdogEvent
 from gcs_bridge import status, telemetry
 from gcs_bridge.bulk import BulkSender
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import (
     MSG_ID_COMPONENT_METADATA,
     MSG_ID_PROTOCOL_VERSION,
@@ -39,27 +36,25 @@ from gcs_bridge.dialect import (
     mavlink,
 )
 from gcs_bridge.dialect import Message as Msg
-from gcs_bridge.endpoints import Endpoint
+from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
 from gcs_bridge.streams import StreamScheduler, stream_for, streams_in_group
 from gcs_bridge.tlog import TlogWriter
-from gcs_bridge.transport import Transport, make_transport
+from gcs_bridge.transports.base import Transport, make_transport
+from gcs_bridge.transports.endpoints import Endpoint
 
 if TYPE_CHECKING:
     from companion.logs.writer import LogService
     from gcs_bridge.dispatch import Dispatcher
-    from gcs_bridge.param_protocol import ParamProtocol
-    from gcs_bridge.services import LinkServices
+    from gcs_bridge.params.protocol import ParamProtocol
+    from gcs_bridge.services.link_services import LinkServices
 
 log = logging.getLogger(__name__)
 
 QUEUE_CAPACITY = 2048
-WAIT_CAP_S = 0.5  # host seconds: the longest wait of either thread, whatever its watchdog
-BEATS_PER_WINDOW = 4  # a thread waits at most its watchdog period over this
 ITEMS_PER_CYCLE = 256
 REFUSAL_REPORT_S = 5.0  # at most one STATUSTEXT about refused messages per link per this
 PEER_MEMORY = 32
-TLOG_FLUSH_S = 1.0
 PARAM_BATCH_PAUSE_NS = 5_000_000  # host ns between MAV_PARAM_BURST-sized batches of a list
 PEER_SILENCE_S = 5.0  # a transfer for a peer not heard from for this long is abandoned
 RADIO_BULK_SHARE = 0.8  # of what the telemetry schedule leaves of a serial line
@@ -456,135 +451,4 @@ def _reset_parser(parser: mavlink.MAVLink) -> None:
     parser.have_prefix_error = False
 
 
-# ---------------------------------------------------------------------------------- threads
-def bounded_wait_s(clock: Clock, watchdog_ms: int, wait_ns: int | None = None) -> float:
-    """Host seconds a link thread may wait for work due in `wait_ns` clock ns (None: nothing
-    due): at most a quarter of its watchdog period, so each watchdog window holds several
-    completed cycles at any clock scale, and at most `WAIT_CAP_S` of host time."""
-    bound_ns = watchdog_ms * 1_000_000 // BEATS_PER_WINDOW
-    if wait_ns is not None:
-        bound_ns = min(bound_ns, max(0, wait_ns))
-    return min(WAIT_CAP_S, clock.to_host_s(bound_ns / 1e9))
-
-
-def receiver_task(index: int) -> Task:
-    """Link `index`'s receive thread: paced by the transport's bounded wait."""
-    return Task(f"mav{index}rx", paced_by="the transport (waits a quarter of its watchdog)",
-                budget_ms=5.0,
-                watchdog_ms=1000, message_ms=5000, switchable=False,
-                implementation="gcs_bridge.link:LinkReceiver")
-
-
-def sender_task(index: int) -> Task:
-    """Link `index`'s send thread: paced by the earliest due message or queued answer."""
-    return Task(f"mav{index}tx", paced_by="due telemetry and queued answers", budget_ms=5.0,
-                watchdog_ms=1000, message_ms=5000, switchable=False,
-                implementation="gcs_bridge.link:LinkSender")
-
-
-class LinkReceiver(ManagedThread):
-    """Receives for one link; paced by the transport with a bounded wait."""
-
-    def __init__(self, link: Link) -> None:
-        super().__init__(receiver_task(link.index))
-        self.link = link
-
-    def setup(self) -> None:
-        self.link.acquire()
-
-    def cleanup(self) -> None:
-        self.link.release()
-
-    def interrupt_io(self) -> None:
-        self.link.transport.wake()
-
-    def recover(self) -> None:
-        self.link.reset_parsers()
-
-    def step(self) -> bool:
-        self.link.receive(bounded_wait_s(self.ctx.clock, self.watchdog_ms), self._mark_work)
-        return True  # an absent ground station is not a fault of the aircraft
-
-    def _mark_work(self) -> None:
-        self.work_t0_ns = time.perf_counter_ns()  # step time counts the work, not the wait
-
-
-class LinkSender(ManagedThread):
-    """Sends for one link: queued answers first, then the telemetry that is due.
-
-    Its own `<PREFIX>_MSG_MS` paces the link's statistics (named values `L<n>_...`).
-    """
-
-    def __init__(self, link: Link) -> None:
-        super().__init__(sender_task(link.index))
-        self.link = link
-        self._wait_host_s = 0.0
-        self._next_stats_ns = 0
-        self._next_flush_ns = 0
-
-    def setup(self) -> None:
-        self.link.acquire()
-
-    def cleanup(self) -> None:
-        try:
-            self.link.drain_on_exit()
-        finally:
-            self.link.release()
-
-    def interrupt_io(self) -> None:
-        self.link.queue.put(_noop)  # wakes the sender's wait at once
-
-    def prologue(self) -> bool:
-        self.link.apply_initial_rates()
-        self._wait_host_s = 0.0
-        return True
-
-    def step(self) -> bool:
-        link = self.link
-        clock = self.ctx.clock
-        awaited = link.scheduler.awaited
-        if awaited is not None and self._wait_host_s > 0 and not len(link.queue):
-            # a due stream waits for its next sample: wake with the sample, not after a poll
-            slot, version = awaited
-            slot.wait_newer(version, self._wait_host_s)
-            item = link.queue.get_nowait()
-        else:
-            item = link.queue.get(self._wait_host_s)
-        self.work_t0_ns = time.perf_counter_ns()  # step time counts the work, not the wait
-        handled = 0
-        while item is not None:
-            # An item taken from the queue is sent even when a stop has just been asked for: it
-            # may be that very stop's COMMAND_ACK, and what is left stays queued for the exit.
-            link.run_item(item)
-            handled += 1
-            if handled >= ITEMS_PER_CYCLE or self.stop_requested:
-                break
-            item = link.queue.get_nowait()
-        now = clock.monotonic_ns()
-        wait_ns = link.scheduler.service(now, link, link.emit)
-        burst = int(self.ctx.params.get("MAV_PARAM_BURST"))
-        # parameter lists and downloads are paced in host time: the network is real even in a
-        # --fast simulation (host ns times the scale are clock ns)
-        wait_ns = min(wait_ns, int(link.param_list_step(burst) * clock.scale))
-        wait_ns = min(wait_ns, int(link.bulk.step(time.monotonic_ns(), link.emit) * clock.scale))
-        link.send_events()
-        link.check_home()
-        if now >= self._next_stats_ns:
-            if self._next_stats_ns:
-                link.emit(status.link_messages(link.core, link.index, link.counters))
-            self._next_stats_ns = now + int(self.message_ms * 1e6)
-        wait_ns = min(wait_ns, self._next_stats_ns - now)
-        if now >= self._next_flush_ns and link.tlog is not None:
-            link.tlog.flush()
-            self._next_flush_ns = now + int(TLOG_FLUSH_S * 1e9)
-        if len(link.queue):
-            wait_ns = 0
-        self._wait_host_s = bounded_wait_s(clock, self.watchdog_ms, wait_ns)
-        return True
-
-
-def _noop(_link: Link) -> None:
-    """Queued only to wake the sender."""
-
-
-__all__ = ["Link", "LinkReceiver", "LinkSender", "Peer"]
+__all__ = ["Link", "Peer"]

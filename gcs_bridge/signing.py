@@ -40,7 +40,7 @@ _HEX_KEY = re.compile(r"^[0-9a-fA-F]{64}$")
 # Messages that change the aircraft. Everything else only asks for information or changes what
 # this one link sends, and may be accepted unsigned on a link that allows unsigned reads.
 # FILE_TRANSFER_PROTOCOL counts as a read here: the FTP server itself refuses every writing
-# operation unless the request was signed with the key (see gcs_bridge/ftp.py).
+# operation unless the request was signed with the key (see gcs_bridge/services/ftp.py).
 WRITE_MESSAGES: frozenset[int] = frozenset({
     mavlink.MAVLINK_MSG_ID_LOG_ERASE,
     mavlink.MAVLINK_MSG_ID_SERIAL_CONTROL,  # the console can restart threads and set parameters

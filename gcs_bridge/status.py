@@ -12,18 +12,16 @@ from dataclasses import dataclass
 from companion import __version__
 from companion.core.state import ServoState
 from companion.watchdog import ThreadStatus
-from gcs_bridge.core import (
+from gcs_bridge.dialect import UINT16_MAX, Identity, ProtocolVersionMessage, clamp_int, mavlink
+from gcs_bridge.dialect import Message as Msg
+from gcs_bridge.runtime_view import (
     THREAD_CONTROL,
     THREAD_ESTIMATOR,
     THREAD_GPS,
     THREAD_IMU,
     THREAD_SERVO,
-    UINT16_MAX,
     BridgeCore,
-    clamp_int,
 )
-from gcs_bridge.dialect import Identity, ProtocolVersionMessage, mavlink
-from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.telemetry import battery_percent
 
 STATUSTEXT_LEN = 50

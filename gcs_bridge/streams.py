@@ -34,9 +34,9 @@ from typing import Any, Protocol
 
 from companion.core.sync import WaitableSlot
 from gcs_bridge import status, telemetry
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import Identity, mavlink
 from gcs_bridge.dialect import Message as Msg
+from gcs_bridge.runtime_view import BridgeCore
 
 FALLBACK_PERIOD_MS = 1000
 MIN_INTERVAL_US = 2000  # 500 Hz: faster requests are clamped

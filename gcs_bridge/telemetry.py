@@ -12,9 +12,9 @@ from functools import lru_cache
 
 from companion.core.geo import NedFrame
 from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSample, ServoState
-from gcs_bridge.core import INT16_MAX, UINT16_MAX, BridgeCore, clamp_int, nan_if_none
+from gcs_bridge.dialect import INT16_MAX, UINT16_MAX, clamp_int, mavlink, nan_if_none
 from gcs_bridge.dialect import Message as Msg
-from gcs_bridge.dialect import mavlink
+from gcs_bridge.runtime_view import BridgeCore
 
 G0_M_S2 = 9.80665
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1

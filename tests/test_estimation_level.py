@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs
 
 from companion.core.params import ParamRegistry
 from companion.core.state import ImuSample
@@ -28,7 +29,6 @@ from companion.vehicle import VEHICLE
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge.bridge import MavlinkBridge
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import MiniGcs
 
 G = 9.80665
 LEVEL = np.array([0.0, 0.0, -G])

@@ -29,6 +29,7 @@ import pytest
 from conftest import free_udp_port, wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.config import (
     Config,
@@ -79,10 +80,9 @@ from companion.logs.reader import read_log_bytes
 from companion.logs.streams import LogFormatError
 from companion.logs.writer import LogService
 from companion.vehicle import load_vehicle_config
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
 from gcs_bridge.signing import SignatureChecker, signing_timestamp
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 from legacy_protocol import codec, messages
 from legacy_protocol.monitor_link import Fleet, Received
 

@@ -13,14 +13,13 @@ from pymavlink.generator.mavcrc import x25crc
 
 from companion.core.params import float_param, int_param
 from companion.logs import LogService
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import (
     MSG_ID_PROTOCOL_VERSION,
     ProtocolVersionMessage,
     crc_extra_of,
     mavlink,
 )
-from gcs_bridge.endpoints import EndpointError, parse_endpoint
+from gcs_bridge.params import codec as param_codec
 from gcs_bridge.signing import (
     KeyFileError,
     SignatureChecker,
@@ -32,6 +31,7 @@ from gcs_bridge.signing import (
 )
 from gcs_bridge.status import statustext
 from gcs_bridge.tlog import TlogWriter, strip_signature, tlog_length
+from gcs_bridge.transports.endpoints import EndpointError, parse_endpoint
 
 INT_SPEC = int_param("TST_INT", 0, -(2**31), 2**31 - 1)
 FLOAT_SPEC = float_param("TST_FLT", 0.0, -1e6, 1e6)

@@ -1,6 +1,6 @@
 """Identity, telemetry rates and commands with a raw MAVLink client, against a SyntheticVehicle.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -19,11 +19,11 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
-from gcs_bridge import ftp
 from gcs_bridge.commands import CMD_RESTART_THREAD
 from gcs_bridge.dialect import MSG_ID_PROTOCOL_VERSION, mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+from gcs_bridge.services import ftp_wire
 
 NAN = float("nan")
 
@@ -167,10 +167,10 @@ def test_information_requests() -> None:
         gcs.send(mavlink.MAVLink_timesync_message(0, 777))
         ts = gcs.recv(2.0, "TIMESYNC")
         assert ts.ts1 == 777 and ts.tc1 > 0
-        body = ftp.HEADER.pack(5, 0, ftp.OP_OPEN_FILE_RO, 17, 0, 0, 0, 0) + b"@PARAM/param.pck"
+        body = ftp_wire.HEADER.pack(5, 0, ftp_wire.OP_OPEN_FILE_RO, 17, 0, 0, 0, 0) + b"@PARAM/param.pck"
         gcs.send(mavlink.MAVLink_file_transfer_protocol_message(0, 1, 1, list(body.ljust(251, b"\0"))))
         nak = gcs.recv(2.0, "FILE_TRANSFER_PROTOCOL")
-        assert nak.payload[3] == ftp.OP_NAK and nak.payload[0] == 6
+        assert nak.payload[3] == ftp_wire.OP_NAK and nak.payload[0] == 6
         gcs.send(mavlink.MAVLink_mission_request_list_message(1, 1, 0))
         assert gcs.recv(2.0, "MISSION_COUNT").count == 0
 

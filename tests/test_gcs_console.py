@@ -11,12 +11,16 @@ from typing import Any
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support.synthetic_vehicle import SyntheticSource
 
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry, int_param
 from companion.watchdog import ManagerCommand, RuntimeContext, ThreadManager
-from gcs_bridge import console as console_mod
-from gcs_bridge.console import (
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
+from gcs_bridge.dialect import mavlink
+from gcs_bridge.runtime_view import BridgeCore
+from gcs_bridge.services import console as console_mod
+from gcs_bridge.services.console import (
     BANNER,
     CALL_OUTPUT_MAX_BYTES,
     DATA_BYTES,
@@ -25,9 +29,6 @@ from gcs_bridge.console import (
     TRUNCATED,
     Console,
 )
-from gcs_bridge.core import BRIDGE_PARAMS, BridgeCore
-from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import SyntheticSource
 
 SHELL = int(mavlink.SERIAL_CONTROL_DEV_SHELL)
 REPLY = int(mavlink.SERIAL_CONTROL_FLAG_REPLY)

@@ -1,4 +1,4 @@
-"""MAVLink FTP server (gcs_bridge.ftp.FtpServer): real files under tmp_path, no sockets, no sleeps.
+"""MAVLink FTP server (gcs_bridge.services.ftp.FtpServer): real files under tmp_path, no sockets, no sleeps.
 
 The requests are shaped the way MAVSDK and MAVProxy send them (paths with and without the NUL in
 `size`, client-chosen sessions, bursts of 239 or fewer bytes), and the replies are checked for
@@ -17,8 +17,8 @@ from typing import Any
 
 import pytest
 
-from gcs_bridge import ftp
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.services import ftp, ftp_wire
 
 U32 = struct.Struct("<I")
 
@@ -35,26 +35,26 @@ class Clock:
 
 class Reply:
     def __init__(self, payload: bytes | None) -> None:
-        assert payload is not None and len(payload) == ftp.PAYLOAD_LEN
+        assert payload is not None and len(payload) == ftp_wire.PAYLOAD_LEN
         (self.seq, self.session, self.opcode, self.size, self.req_opcode, self.burst_complete,
-         _pad, self.offset) = ftp.HEADER.unpack_from(payload)
-        self.data = payload[ftp.HEADER.size:ftp.HEADER.size + self.size]
-        assert payload[ftp.HEADER.size + self.size:] == bytes(ftp.DATA_LEN - self.size)
+         _pad, self.offset) = ftp_wire.HEADER.unpack_from(payload)
+        self.data = payload[ftp_wire.HEADER.size:ftp_wire.HEADER.size + self.size]
+        assert payload[ftp_wire.HEADER.size + self.size:] == bytes(ftp_wire.DATA_LEN - self.size)
 
     @property
     def ack(self) -> bool:
-        return self.opcode == ftp.OP_ACK
+        return self.opcode == ftp_wire.OP_ACK
 
     @property
     def error(self) -> int:
-        assert self.opcode == ftp.OP_NAK and self.size in (1, 2), vars(self)
+        assert self.opcode == ftp_wire.OP_NAK and self.size in (1, 2), vars(self)
         return self.data[0]
 
 
 def request(opcode: int, data: bytes = b"", *, seq: int = 0, session: int = 0, offset: int = 0,
             size: int | None = None) -> bytes:
     size = len(data) if size is None else size
-    return (ftp.HEADER.pack(seq, session, opcode, size, 0, 0, 0, offset) + data).ljust(251, b"\0")
+    return (ftp_wire.HEADER.pack(seq, session, opcode, size, 0, 0, 0, offset) + data).ljust(251, b"\0")
 
 
 class Client:
@@ -76,30 +76,30 @@ class Client:
         assert len(replies) == 1
         return replies[0]
 
-    def listing(self, path: str, *, opcode: int = ftp.OP_LIST_DIRECTORY) -> list[bytes]:
+    def listing(self, path: str, *, opcode: int = ftp_wire.OP_LIST_DIRECTORY) -> list[bytes]:
         """All entries, paged by offset the way the clients do, until NAK EOF."""
         entries: list[bytes] = []
         while True:
             r = self.one(opcode, path.encode() + b"\0", offset=len(entries))
             if not r.ack:
-                assert r.error == ftp.ERR_EOF
+                assert r.error == ftp_wire.ERR_EOF
                 return entries
             assert r.data.endswith(b"\0") and b"\0\0" not in r.data
             entries += r.data[:-1].split(b"\0")
 
     def download(self, path: str, *, session: int = 0) -> bytes:
-        opened = self.one(ftp.OP_OPEN_FILE_RO, path.encode(), session=session)
+        opened = self.one(ftp_wire.OP_OPEN_FILE_RO, path.encode(), session=session)
         assert opened.ack and opened.session == session and opened.size == 4
         out = b""
         while True:
-            r = self.one(ftp.OP_READ_FILE, session=session, offset=len(out), size=239)
+            r = self.one(ftp_wire.OP_READ_FILE, session=session, offset=len(out), size=239)
             if not r.ack:
-                assert r.error == ftp.ERR_EOF
+                assert r.error == ftp_wire.ERR_EOF
                 break
             assert r.offset == len(out)
             out += r.data
         assert len(out) == U32.unpack(opened.data)[0]
-        assert self.one(ftp.OP_TERMINATE_SESSION, session=session).ack
+        assert self.one(ftp_wire.OP_TERMINATE_SESSION, session=session).ack
         return out
 
 
@@ -161,19 +161,19 @@ def test_list_root_subdir_and_eof(server: ftp.FtpServer) -> None:
     assert c.listing("") == c.listing("/") == c.listing(".")
     assert c.listing("/logs/f1") == [b"Fimu.bin\t2560"]
     assert c.listing("logs/f1/") == [b"Fimu.bin\t2560"]
-    first = c.one(ftp.OP_LIST_DIRECTORY, b"/", offset=1)
+    first = c.one(ftp_wire.OP_LIST_DIRECTORY, b"/", offset=1)
     assert first.data == b"Dempty\0Dlogs\0"
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/", offset=3).error == ftp.ERR_EOF
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/empty").error == ftp.ERR_EOF  # empty: EOF at once
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/nope").error == ftp.ERR_FILENOTFOUND
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/@meta").error == ftp.ERR_FILENOTFOUND  # not listed
-    not_dir = c.one(ftp.OP_LIST_DIRECTORY, b"/a.txt")
-    assert (not_dir.error, not_dir.data[1]) == (ftp.ERR_FAILERRNO, 20)  # ENOTDIR
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/", offset=3).error == ftp_wire.ERR_EOF
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/empty").error == ftp_wire.ERR_EOF  # empty: EOF at once
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/nope").error == ftp_wire.ERR_FILENOTFOUND
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/@meta").error == ftp_wire.ERR_FILENOTFOUND  # not listed
+    not_dir = c.one(ftp_wire.OP_LIST_DIRECTORY, b"/a.txt")
+    assert (not_dir.error, not_dir.data[1]) == (ftp_wire.ERR_FAILERRNO, 20)  # ENOTDIR
 
 
 def test_list_with_time_gives_mtimes(server: ftp.FtpServer, tree: Path) -> None:
     os.utime(tree / "a.txt", (1747459200, 1747459200))
-    entries = Client(server).listing("/", opcode=ftp.OP_LIST_DIRECTORY_WITH_TIME)
+    entries = Client(server).listing("/", opcode=ftp_wire.OP_LIST_DIRECTORY_WITH_TIME)
     assert entries[0] == b"Fa.txt\t5\t1747459200"
     name, size, mtime = entries[2].split(b"\t")
     assert (name, size) == (b"Dlogs", b"0") and int(mtime) > 0
@@ -192,12 +192,12 @@ def test_list_pages_keep_every_entry_once_and_skip_what_cannot_be_shown(
     c = Client(make_server(tree))
     pages = []
     offset = 0
-    while (r := c.one(ftp.OP_LIST_DIRECTORY, b"/big", offset=offset)).ack:
-        assert r.size <= ftp.DATA_LEN
+    while (r := c.one(ftp_wire.OP_LIST_DIRECTORY, b"/big", offset=offset)).ack:
+        assert r.size <= ftp_wire.DATA_LEN
         page = r.data[:-1].split(b"\0")
         pages.append(page)
         offset += len(page)
-    assert r.error == ftp.ERR_EOF and len(pages) > 5
+    assert r.error == ftp_wire.ERR_EOF and len(pages) > 5
     entries = [e for page in pages for e in page]
     shown = sorted(e[1:].split(b"\t")[0].decode() for e in entries if e != b"S")
     assert shown == sorted(names)
@@ -211,7 +211,7 @@ def test_a_huge_directory_yields_between_pieces(
     for i in range(300):
         (many / f"{i:04d}").write_bytes(b"")
     out = list(make_server(tree).handle(
-        request(ftp.OP_LIST_DIRECTORY, b"/many"), may_write=False))
+        request(ftp_wire.OP_LIST_DIRECTORY, b"/many"), may_write=False))
     assert out[0] is None and out[-1] is not None and Reply(out[-1]).ack
 
 
@@ -222,24 +222,24 @@ def test_open_and_read_whole_file_byte_exact(server: ftp.FtpServer, tree: Path) 
     assert c.download("/logs/f1/imu.bin", session=7) == (tree / "logs/f1/imu.bin").read_bytes()
     assert c.download("a.txt") == b"hello"
     # MAVSDK counts the path's NUL in size; anything after it is ignored
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt\0junk").ack
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt\0junk").ack
 
 
 def test_read_sizes_offsets_and_eof(server: ftp.FtpServer) -> None:
     c = Client(server)
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=3).ack
-    r = c.one(ftp.OP_READ_FILE, session=3, offset=250, size=10)
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=3).ack
+    r = c.one(ftp_wire.OP_READ_FILE, session=3, offset=250, size=10)
     assert (r.offset, r.data) == (250, bytes([250, 251, 252, 253, 254, 255, 0, 1, 2, 3]))
-    assert c.one(ftp.OP_READ_FILE, session=3, offset=2550, size=239).data == bytes(range(246, 256))
-    assert c.one(ftp.OP_READ_FILE, session=3, offset=0, size=0).size == 239  # 0: as much as fits
-    assert c.one(ftp.OP_READ_FILE, session=3, offset=2560, size=10).error == ftp.ERR_EOF
-    assert c.one(ftp.OP_READ_FILE, session=3, offset=99999).error == ftp.ERR_EOF
-    assert c.one(ftp.OP_READ_FILE, session=3, size=240).error == ftp.ERR_INVALIDDATASIZE
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, offset=2550, size=239).data == bytes(range(246, 256))
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, offset=0, size=0).size == 239  # 0: as much as fits
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, offset=2560, size=10).error == ftp_wire.ERR_EOF
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, offset=99999).error == ftp_wire.ERR_EOF
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, size=240).error == ftp_wire.ERR_INVALIDDATASIZE
 
 
 def burst(c: Client, session: int, offset: int = 0, size: int = 239,
           seq: int = 500) -> list[Reply]:
-    return c.send(ftp.OP_BURST_READ_FILE, session=session, offset=offset, size=size, seq=seq)
+    return c.send(ftp_wire.OP_BURST_READ_FILE, session=session, offset=offset, size=size, seq=seq)
 
 
 @pytest.mark.parametrize("length", [1, 238, 239, 240, 478, 2560, 5000])
@@ -248,10 +248,10 @@ def test_burst_read_byte_exact(tree: Path, make_server: Callable[..., ftp.FtpSer
     content = random.Random(length).randbytes(length)
     (tree / "blob").write_bytes(content)
     c = Client(make_server(tree))
-    opened = c.one(ftp.OP_OPEN_FILE_RO, b"/blob\0", session=9)
+    opened = c.one(ftp_wire.OP_OPEN_FILE_RO, b"/blob\0", session=9)
     assert U32.unpack(opened.data)[0] == length
     packets = burst(c, 9)
-    assert all(p.ack and p.session == 9 and p.req_opcode == ftp.OP_BURST_READ_FILE
+    assert all(p.ack and p.session == 9 and p.req_opcode == ftp_wire.OP_BURST_READ_FILE
                for p in packets)
     assert b"".join(p.data for p in packets) == content
     assert [p.offset for p in packets] == list(range(0, length, 239))
@@ -259,12 +259,12 @@ def test_burst_read_byte_exact(tree: Path, make_server: Callable[..., ftp.FtpSer
     assert [p.burst_complete for p in packets] == [0] * (len(packets) - 1) + [1]
     # MAVProxy asks again after a full last packet: the end of the file is NAK EOF
     end = burst(c, 9, offset=length)
-    assert len(end) == 1 and end[0].error == ftp.ERR_EOF and end[0].burst_complete == 1
+    assert len(end) == 1 and end[0].error == ftp_wire.ERR_EOF and end[0].burst_complete == 1
 
 
 def test_burst_honours_the_requested_size_and_offset(server: ftp.FtpServer, tree: Path) -> None:
     c = Client(server)
-    c.one(ftp.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=1)
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=1)
     packets = burst(c, 1, offset=1000, size=80)
     assert {p.size for p in packets[:-1]} == {80} and packets[-1].size == 1560 % 80
     assert b"".join(p.data for p in packets) == (tree / "logs/f1/imu.bin").read_bytes()[1000:]
@@ -274,20 +274,20 @@ def test_empty_file_burst_and_read_are_eof(
         tree: Path, make_server: Callable[..., ftp.FtpServer]) -> None:
     (tree / "nothing").write_bytes(b"")
     c = Client(make_server(tree))
-    opened = c.one(ftp.OP_OPEN_FILE_RO, b"nothing")
+    opened = c.one(ftp_wire.OP_OPEN_FILE_RO, b"nothing")
     assert opened.data == U32.pack(0)
-    assert burst(c, 0)[0].error == ftp.ERR_EOF
-    assert c.one(ftp.OP_READ_FILE).error == ftp.ERR_EOF
+    assert burst(c, 0)[0].error == ftp_wire.ERR_EOF
+    assert c.one(ftp_wire.OP_READ_FILE).error == ftp_wire.ERR_EOF
 
 
 def test_a_growing_file_is_served_as_announced(server: ftp.FtpServer, tree: Path) -> None:
     c = Client(server)
-    opened = c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt")
+    opened = c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt")
     with open(tree / "a.txt", "ab") as f:
         f.write(b" world")
     assert opened.data == U32.pack(5)
     assert b"".join(p.data for p in burst(c, 0)) == b"hello"
-    assert c.one(ftp.OP_READ_FILE, offset=5).error == ftp.ERR_EOF
+    assert c.one(ftp_wire.OP_READ_FILE, offset=5).error == ftp_wire.ERR_EOF
 
 
 def test_crc32_is_mavlinks_crc(tree: Path, make_server: Callable[..., ftp.FtpServer]) -> None:
@@ -296,20 +296,20 @@ def test_crc32_is_mavlinks_crc(tree: Path, make_server: Callable[..., ftp.FtpSer
     server = make_server(tree)
     baseline = open_fds()
     out = []
-    for reply in server.handle(request(ftp.OP_CALC_FILE_CRC32, b"/big.bin"), may_write=False):
+    for reply in server.handle(request(ftp_wire.OP_CALC_FILE_CRC32, b"/big.bin"), may_write=False):
         assert open_fds() == baseline  # nothing held open while the caller waits
         out.append(reply)
     assert out[:4] == [None] * 4 and out[-1] is not None
     crc = U32.unpack(Reply(out[-1]).data)[0]
     # what MAVSDK's Crc32 and MAVProxy's crclocal compute; plain zlib.crc32 differs
-    assert crc == zlib.crc32(content, 0xFFFFFFFF) ^ 0xFFFFFFFF == ftp.mavlink_crc32(content)
+    assert crc == zlib.crc32(content, 0xFFFFFFFF) ^ 0xFFFFFFFF == ftp_wire.mavlink_crc32(content)
     assert crc != zlib.crc32(content)
-    assert ftp.mavlink_crc32(b"123456789") == reference_crc(b"123456789")
-    assert ftp.mavlink_crc32(content[:999]) == reference_crc(content[:999])
+    assert ftp_wire.mavlink_crc32(b"123456789") == reference_crc(b"123456789")
+    assert ftp_wire.mavlink_crc32(content[:999]) == reference_crc(content[:999])
     c = Client(server)
-    assert c.one(ftp.OP_CALC_FILE_CRC32, b"/a.txt\0").data == U32.pack(reference_crc(b"hello"))
-    assert c.one(ftp.OP_CALC_FILE_CRC32, b"/nope").error == ftp.ERR_FILENOTFOUND
-    assert c.one(ftp.OP_CALC_FILE_CRC32, b"/empty").data[1] == 21  # EISDIR
+    assert c.one(ftp_wire.OP_CALC_FILE_CRC32, b"/a.txt\0").data == U32.pack(reference_crc(b"hello"))
+    assert c.one(ftp_wire.OP_CALC_FILE_CRC32, b"/nope").error == ftp_wire.ERR_FILENOTFOUND
+    assert c.one(ftp_wire.OP_CALC_FILE_CRC32, b"/empty").data[1] == 21  # EISDIR
 
 
 # -- virtual files ---------------------------------------------------------------------------------
@@ -318,14 +318,14 @@ def test_virtual_files_read_but_never_listed_or_written(server: ftp.FtpServer) -
     c = Client(server)
     assert c.download("/@meta/general.json") == b'{"v": 1}'
     assert c.download("@meta/general.json") == b'{"v": 1}'  # ArduPilot-style, no leading "/"
-    c.one(ftp.OP_OPEN_FILE_RO, b"/@meta/general.json", session=2)
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/@meta/general.json", session=2)
     assert b"".join(p.data for p in burst(c, 2)) == b'{"v": 1}'
-    crc = c.one(ftp.OP_CALC_FILE_CRC32, b"/@meta/general.json").data
+    crc = c.one(ftp_wire.OP_CALC_FILE_CRC32, b"/@meta/general.json").data
     assert crc == U32.pack(reference_crc(b'{"v": 1}'))
     w = Client(server, may_write=True)
-    for op in (ftp.OP_CREATE_FILE, ftp.OP_OPEN_FILE_WO, ftp.OP_REMOVE_FILE, ftp.OP_TRUNCATE_FILE):
-        assert w.one(op, b"/@meta/general.json").error == ftp.ERR_FILEPROTECTED
-    assert w.one(ftp.OP_RENAME, b"/@meta/general.json\0/x").error == ftp.ERR_FILEPROTECTED
+    for op in (ftp_wire.OP_CREATE_FILE, ftp_wire.OP_OPEN_FILE_WO, ftp_wire.OP_REMOVE_FILE, ftp_wire.OP_TRUNCATE_FILE):
+        assert w.one(op, b"/@meta/general.json").error == ftp_wire.ERR_FILEPROTECTED
+    assert w.one(ftp_wire.OP_RENAME, b"/@meta/general.json\0/x").error == ftp_wire.ERR_FILEPROTECTED
 
 
 def test_a_failing_provider_is_a_nak_fail(tree: Path, make_server: Callable[..., ftp.FtpServer],
@@ -334,8 +334,8 @@ def test_a_failing_provider_is_a_nak_fail(tree: Path, make_server: Callable[...,
         raise RuntimeError("no metadata")
 
     c = Client(make_server(tree, virtual={"/@meta/x": broken}))
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/@meta/x").error == ftp.ERR_FAIL
-    assert c.one(ftp.OP_CALC_FILE_CRC32, b"/@meta/x").error == ftp.ERR_FAIL
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/@meta/x").error == ftp_wire.ERR_FAIL
+    assert c.one(ftp_wire.OP_CALC_FILE_CRC32, b"/@meta/x").error == ftp_wire.ERR_FAIL
     assert "no metadata" in caplog.text
 
 
@@ -344,41 +344,41 @@ def test_a_failing_provider_is_a_nak_fail(tree: Path, make_server: Callable[...,
 def test_sessions_are_the_clients_and_limited(server: ftp.FtpServer) -> None:
     c = Client(server)
     for sid in (0, 17, 200, 255):
-        assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=sid).session == sid
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=5).error == ftp.ERR_NOSESSIONSAVAILABLE
+        assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=sid).session == sid
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=5).error == ftp_wire.ERR_NOSESSIONSAVAILABLE
     # a retried open on a session still open replaces it (MAVSDK retries with a new seq)
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=17).data == U32.pack(2560)
-    assert c.one(ftp.OP_READ_FILE, session=17, offset=255, size=1).data == b"\xff"
-    assert c.one(ftp.OP_TERMINATE_SESSION, session=17).ack
-    assert c.one(ftp.OP_READ_FILE, session=17).error == ftp.ERR_INVALIDSESSION
-    assert c.one(ftp.OP_TERMINATE_SESSION, session=17).ack  # closing twice is still done
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=5).ack
-    assert c.one(ftp.OP_RESET_SESSIONS).ack
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin", session=17).data == U32.pack(2560)
+    assert c.one(ftp_wire.OP_READ_FILE, session=17, offset=255, size=1).data == b"\xff"
+    assert c.one(ftp_wire.OP_TERMINATE_SESSION, session=17).ack
+    assert c.one(ftp_wire.OP_READ_FILE, session=17).error == ftp_wire.ERR_INVALIDSESSION
+    assert c.one(ftp_wire.OP_TERMINATE_SESSION, session=17).ack  # closing twice is still done
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=5).ack
+    assert c.one(ftp_wire.OP_RESET_SESSIONS).ack
     for sid in (0, 5, 200, 255):
-        assert c.one(ftp.OP_READ_FILE, session=sid).error == ftp.ERR_INVALIDSESSION
-        assert c.one(ftp.OP_BURST_READ_FILE, session=sid).error == ftp.ERR_INVALIDSESSION
+        assert c.one(ftp_wire.OP_READ_FILE, session=sid).error == ftp_wire.ERR_INVALIDSESSION
+        assert c.one(ftp_wire.OP_BURST_READ_FILE, session=sid).error == ftp_wire.ERR_INVALIDSESSION
 
 
 def test_bad_session_and_session_timeout(server: ftp.FtpServer, clock: Clock) -> None:
     c = Client(server)
-    assert c.one(ftp.OP_READ_FILE, session=3).error == ftp.ERR_INVALIDSESSION
-    assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=3).ack
+    assert c.one(ftp_wire.OP_READ_FILE, session=3).error == ftp_wire.ERR_INVALIDSESSION
+    assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=3).ack
     clock.now_s += 9.5
-    assert c.one(ftp.OP_READ_FILE, session=3).ack  # use keeps it alive
+    assert c.one(ftp_wire.OP_READ_FILE, session=3).ack  # use keeps it alive
     clock.now_s += 9.5
-    assert c.one(ftp.OP_READ_FILE, session=3, offset=1).ack
+    assert c.one(ftp_wire.OP_READ_FILE, session=3, offset=1).ack
     clock.now_s += 10.5
-    assert c.one(ftp.OP_READ_FILE, session=3).error == ftp.ERR_INVALIDSESSION
+    assert c.one(ftp_wire.OP_READ_FILE, session=3).error == ftp_wire.ERR_INVALIDSESSION
     for sid in range(4):  # the timed-out session no longer takes a slot
-        assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=sid).ack
+        assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=sid).ack
 
 
 def test_read_and_write_sessions_do_not_mix(server: ftp.FtpServer) -> None:
     w = Client(server, may_write=True)
-    assert w.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=1).ack
-    assert w.one(ftp.OP_WRITE_FILE, b"x", session=1).error == ftp.ERR_INVALIDSESSION
-    assert w.one(ftp.OP_CREATE_FILE, b"/new", session=2).ack
-    assert w.one(ftp.OP_READ_FILE, session=2).error == ftp.ERR_INVALIDSESSION
+    assert w.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=1).ack
+    assert w.one(ftp_wire.OP_WRITE_FILE, b"x", session=1).error == ftp_wire.ERR_INVALIDSESSION
+    assert w.one(ftp_wire.OP_CREATE_FILE, b"/new", session=2).ack
+    assert w.one(ftp_wire.OP_READ_FILE, session=2).error == ftp_wire.ERR_INVALIDSESSION
 
 
 # -- confinement -----------------------------------------------------------------------------------
@@ -391,13 +391,13 @@ def test_paths_outside_the_root_are_not_found(server: ftp.FtpServer, tree: Path)
     w = Client(server, may_write=True)
     for path in (b"/../secret.txt", b"../secret.txt", b"logs/../../secret.txt",
                  b"/link_out", b"/dir_out/secret.txt", b"/logs/../a.txt"):
-        assert c.one(ftp.OP_OPEN_FILE_RO, path).error == ftp.ERR_FILENOTFOUND, path
-        assert c.one(ftp.OP_CALC_FILE_CRC32, path).error == ftp.ERR_FILENOTFOUND, path
-        assert w.one(ftp.OP_CREATE_FILE, path).error == ftp.ERR_FILENOTFOUND, path
-        assert w.one(ftp.OP_REMOVE_FILE, path).error == ftp.ERR_FILENOTFOUND, path
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/dir_out").error == ftp.ERR_FILENOTFOUND
-    assert c.one(ftp.OP_LIST_DIRECTORY, b"/..").error == ftp.ERR_FILENOTFOUND
-    assert w.one(ftp.OP_RENAME, b"/a.txt\0/../moved").error == ftp.ERR_FILENOTFOUND
+        assert c.one(ftp_wire.OP_OPEN_FILE_RO, path).error == ftp_wire.ERR_FILENOTFOUND, path
+        assert c.one(ftp_wire.OP_CALC_FILE_CRC32, path).error == ftp_wire.ERR_FILENOTFOUND, path
+        assert w.one(ftp_wire.OP_CREATE_FILE, path).error == ftp_wire.ERR_FILENOTFOUND, path
+        assert w.one(ftp_wire.OP_REMOVE_FILE, path).error == ftp_wire.ERR_FILENOTFOUND, path
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/dir_out").error == ftp_wire.ERR_FILENOTFOUND
+    assert c.one(ftp_wire.OP_LIST_DIRECTORY, b"/..").error == ftp_wire.ERR_FILENOTFOUND
+    assert w.one(ftp_wire.OP_RENAME, b"/a.txt\0/../moved").error == ftp_wire.ERR_FILENOTFOUND
     assert (tree.parent / "secret.txt").read_bytes() == b"outside"
     assert not (tree.parent / "moved").exists()
     assert c.download("/link_in") == b"hello"  # a link that stays inside is fine
@@ -405,38 +405,38 @@ def test_paths_outside_the_root_are_not_found(server: ftp.FtpServer, tree: Path)
 
 # -- writing ---------------------------------------------------------------------------------------
 
-WRITE_OPS = [(ftp.OP_CREATE_FILE, b"/new.txt"), (ftp.OP_OPEN_FILE_WO, b"/a.txt"),
-             (ftp.OP_REMOVE_FILE, b"/a.txt"), (ftp.OP_CREATE_DIRECTORY, b"/d"),
-             (ftp.OP_REMOVE_DIRECTORY, b"/empty"), (ftp.OP_RENAME, b"/a.txt\0/b.txt"),
-             (ftp.OP_TRUNCATE_FILE, b"/a.txt")]
+WRITE_OPS = [(ftp_wire.OP_CREATE_FILE, b"/new.txt"), (ftp_wire.OP_OPEN_FILE_WO, b"/a.txt"),
+             (ftp_wire.OP_REMOVE_FILE, b"/a.txt"), (ftp_wire.OP_CREATE_DIRECTORY, b"/d"),
+             (ftp_wire.OP_REMOVE_DIRECTORY, b"/empty"), (ftp_wire.OP_RENAME, b"/a.txt\0/b.txt"),
+             (ftp_wire.OP_TRUNCATE_FILE, b"/a.txt")]
 
 
 @pytest.mark.parametrize(("opcode", "data"), WRITE_OPS)
 def test_read_only_refuses_every_change(server: ftp.FtpServer, tree: Path, opcode: int,
                                         data: bytes) -> None:
     before = sorted(p.name for p in tree.rglob("*"))
-    assert Client(server).one(opcode, data).error == ftp.ERR_FILEPROTECTED
+    assert Client(server).one(opcode, data).error == ftp_wire.ERR_FILEPROTECTED
     assert sorted(p.name for p in tree.rglob("*")) == before
     assert (tree / "a.txt").read_bytes() == b"hello"
 
 
 def test_write_needs_may_write_on_every_request(server: ftp.FtpServer, tree: Path) -> None:
-    assert Client(server, may_write=True).one(ftp.OP_CREATE_FILE, b"/n", session=4).ack
-    assert Client(server).one(ftp.OP_WRITE_FILE, b"abc", session=4).error == ftp.ERR_FILEPROTECTED
+    assert Client(server, may_write=True).one(ftp_wire.OP_CREATE_FILE, b"/n", session=4).ack
+    assert Client(server).one(ftp_wire.OP_WRITE_FILE, b"abc", session=4).error == ftp_wire.ERR_FILEPROTECTED
     assert (tree / "n").read_bytes() == b""
 
 
 @pytest.mark.parametrize(("opcode", "data"), [
-    (ftp.OP_CREATE_FILE, b"/logs/f1/new.bin"), (ftp.OP_OPEN_FILE_WO, b"/logs/f1/imu.bin"),
-    (ftp.OP_REMOVE_FILE, b"/logs/f1/imu.bin"), (ftp.OP_CREATE_DIRECTORY, b"/logs/f1/sub"),
-    (ftp.OP_REMOVE_DIRECTORY, b"/logs/f1"), (ftp.OP_REMOVE_DIRECTORY, b"/logs"),
-    (ftp.OP_RENAME, b"/logs/f1/imu.bin\0/imu.bin"), (ftp.OP_RENAME, b"/logs\0/old_logs"),
-    (ftp.OP_RENAME, b"/a.txt\0/logs/f1/a.txt"), (ftp.OP_TRUNCATE_FILE, b"/logs/f1/imu.bin"),
-    (ftp.OP_REMOVE_DIRECTORY, b"/"), (ftp.OP_RENAME, b"/\0/x"),
+    (ftp_wire.OP_CREATE_FILE, b"/logs/f1/new.bin"), (ftp_wire.OP_OPEN_FILE_WO, b"/logs/f1/imu.bin"),
+    (ftp_wire.OP_REMOVE_FILE, b"/logs/f1/imu.bin"), (ftp_wire.OP_CREATE_DIRECTORY, b"/logs/f1/sub"),
+    (ftp_wire.OP_REMOVE_DIRECTORY, b"/logs/f1"), (ftp_wire.OP_REMOVE_DIRECTORY, b"/logs"),
+    (ftp_wire.OP_RENAME, b"/logs/f1/imu.bin\0/imu.bin"), (ftp_wire.OP_RENAME, b"/logs\0/old_logs"),
+    (ftp_wire.OP_RENAME, b"/a.txt\0/logs/f1/a.txt"), (ftp_wire.OP_TRUNCATE_FILE, b"/logs/f1/imu.bin"),
+    (ftp_wire.OP_REMOVE_DIRECTORY, b"/"), (ftp_wire.OP_RENAME, b"/\0/x"),
 ])
 def test_the_recorded_flight_and_the_root_are_protected(server: ftp.FtpServer, tree: Path,
                                                         opcode: int, data: bytes) -> None:
-    assert Client(server, may_write=True).one(opcode, data).error == ftp.ERR_FILEPROTECTED
+    assert Client(server, may_write=True).one(opcode, data).error == ftp_wire.ERR_FILEPROTECTED
     assert (tree / "logs/f1/imu.bin").read_bytes() == bytes(range(256)) * 10
     assert sorted(p.name for p in (tree / "logs/f1").iterdir()) == ["imu.bin"]
 
@@ -445,50 +445,50 @@ def test_a_write_session_stops_when_its_flight_starts(
         tree: Path, make_server: Callable[..., ftp.FtpServer]) -> None:
     flight: list[Path | None] = [None]
     w = Client(make_server(tree, protected=lambda: flight[0]), may_write=True)
-    assert w.one(ftp.OP_CREATE_FILE, b"/logs/f1/notes", session=1).ack
-    assert w.one(ftp.OP_WRITE_FILE, b"ok", session=1).ack
+    assert w.one(ftp_wire.OP_CREATE_FILE, b"/logs/f1/notes", session=1).ack
+    assert w.one(ftp_wire.OP_WRITE_FILE, b"ok", session=1).ack
     flight[0] = tree / "logs" / "f1"
-    assert w.one(ftp.OP_WRITE_FILE, b"no", session=1, offset=2).error == ftp.ERR_FILEPROTECTED
+    assert w.one(ftp_wire.OP_WRITE_FILE, b"no", session=1, offset=2).error == ftp_wire.ERR_FILEPROTECTED
     assert (tree / "logs/f1/notes").read_bytes() == b"ok"
 
 
 def test_write_path_works(server: ftp.FtpServer, tree: Path) -> None:
     w = Client(server, may_write=True)
     content = random.Random(2).randbytes(1000)
-    assert w.one(ftp.OP_CREATE_DIRECTORY, b"/up\0").ack
-    created = w.one(ftp.OP_CREATE_FILE, b"/up/file.bin\0", session=6)
+    assert w.one(ftp_wire.OP_CREATE_DIRECTORY, b"/up\0").ack
+    created = w.one(ftp_wire.OP_CREATE_FILE, b"/up/file.bin\0", session=6)
     assert created.ack and created.session == 6 and created.size == 0
     blocks = list(range(0, len(content), 239))
     for offset in reversed(blocks):  # out of order, as MAVProxy resends
-        r = w.one(ftp.OP_WRITE_FILE, content[offset:offset + 239], session=6, offset=offset)
+        r = w.one(ftp_wire.OP_WRITE_FILE, content[offset:offset + 239], session=6, offset=offset)
         assert r.ack and r.offset == offset and r.size == 0
-    assert w.one(ftp.OP_TERMINATE_SESSION, session=6).ack
+    assert w.one(ftp_wire.OP_TERMINATE_SESSION, session=6).ack
     assert (tree / "up/file.bin").read_bytes() == content
-    assert w.one(ftp.OP_CALC_FILE_CRC32, b"/up/file.bin").data == U32.pack(reference_crc(content))
-    appended = w.one(ftp.OP_OPEN_FILE_WO, b"/up/file.bin", session=6)
+    assert w.one(ftp_wire.OP_CALC_FILE_CRC32, b"/up/file.bin").data == U32.pack(reference_crc(content))
+    appended = w.one(ftp_wire.OP_OPEN_FILE_WO, b"/up/file.bin", session=6)
     assert appended.data == U32.pack(1000)
-    assert w.one(ftp.OP_WRITE_FILE, b"END", session=6, offset=1000).ack
-    assert w.one(ftp.OP_TRUNCATE_FILE, b"/up/file.bin", offset=10).ack
+    assert w.one(ftp_wire.OP_WRITE_FILE, b"END", session=6, offset=1000).ack
+    assert w.one(ftp_wire.OP_TRUNCATE_FILE, b"/up/file.bin", offset=10).ack
     assert (tree / "up/file.bin").read_bytes() == content[:10]
-    truncate_more = w.one(ftp.OP_TRUNCATE_FILE, b"/up/file.bin", offset=11)
-    assert (truncate_more.error, truncate_more.data[1]) == (ftp.ERR_FAILERRNO, 22)
-    assert w.one(ftp.OP_RENAME, b"/up/file.bin\0/up/moved.bin").ack  # MAVProxy: one NUL
-    assert w.one(ftp.OP_RENAME, b"/up/moved.bin\0/a.txt\0").error == ftp.ERR_FILEEXISTS  # MAVSDK
-    assert w.one(ftp.OP_RENAME, b"/up/moved.bin").error == ftp.ERR_INVALIDDATASIZE
-    assert w.one(ftp.OP_REMOVE_DIRECTORY, b"/up").data[:2] == bytes([ftp.ERR_FAILERRNO, 39])
-    assert w.one(ftp.OP_REMOVE_FILE, b"/up/moved.bin").ack
-    assert w.one(ftp.OP_REMOVE_FILE, b"/up/moved.bin").error == ftp.ERR_FILENOTFOUND
-    assert w.one(ftp.OP_REMOVE_DIRECTORY, b"/up").ack
-    assert w.one(ftp.OP_CREATE_DIRECTORY, b"/empty").error == ftp.ERR_FILEEXISTS
-    assert w.one(ftp.OP_CREATE_FILE, b"/no/such/dir/x").error == ftp.ERR_FILENOTFOUND
-    assert w.one(ftp.OP_CREATE_FILE, b"/empty").data[:2] == bytes([ftp.ERR_FAILERRNO, 21])
-    assert w.one(ftp.OP_CREATE_FILE, b"/a.txt").ack  # an existing file is truncated
+    truncate_more = w.one(ftp_wire.OP_TRUNCATE_FILE, b"/up/file.bin", offset=11)
+    assert (truncate_more.error, truncate_more.data[1]) == (ftp_wire.ERR_FAILERRNO, 22)
+    assert w.one(ftp_wire.OP_RENAME, b"/up/file.bin\0/up/moved.bin").ack  # MAVProxy: one NUL
+    assert w.one(ftp_wire.OP_RENAME, b"/up/moved.bin\0/a.txt\0").error == ftp_wire.ERR_FILEEXISTS  # MAVSDK
+    assert w.one(ftp_wire.OP_RENAME, b"/up/moved.bin").error == ftp_wire.ERR_INVALIDDATASIZE
+    assert w.one(ftp_wire.OP_REMOVE_DIRECTORY, b"/up").data[:2] == bytes([ftp_wire.ERR_FAILERRNO, 39])
+    assert w.one(ftp_wire.OP_REMOVE_FILE, b"/up/moved.bin").ack
+    assert w.one(ftp_wire.OP_REMOVE_FILE, b"/up/moved.bin").error == ftp_wire.ERR_FILENOTFOUND
+    assert w.one(ftp_wire.OP_REMOVE_DIRECTORY, b"/up").ack
+    assert w.one(ftp_wire.OP_CREATE_DIRECTORY, b"/empty").error == ftp_wire.ERR_FILEEXISTS
+    assert w.one(ftp_wire.OP_CREATE_FILE, b"/no/such/dir/x").error == ftp_wire.ERR_FILENOTFOUND
+    assert w.one(ftp_wire.OP_CREATE_FILE, b"/empty").data[:2] == bytes([ftp_wire.ERR_FAILERRNO, 21])
+    assert w.one(ftp_wire.OP_CREATE_FILE, b"/a.txt").ack  # an existing file is truncated
     assert (tree / "a.txt").read_bytes() == b""
 
 
 def test_removing_a_symlink_removes_the_link(server: ftp.FtpServer, tree: Path) -> None:
     (tree / "alias").symlink_to(tree / "a.txt")
-    assert Client(server, may_write=True).one(ftp.OP_REMOVE_FILE, b"/alias").ack
+    assert Client(server, may_write=True).one(ftp_wire.OP_REMOVE_FILE, b"/alias").ack
     assert not (tree / "alias").is_symlink() and (tree / "a.txt").read_bytes() == b"hello"
 
 
@@ -496,69 +496,69 @@ def test_removing_a_symlink_removes_the_link(server: ftp.FtpServer, tree: Path) 
 
 def test_a_resent_request_gets_the_same_reply_and_is_not_done_twice(
         server: ftp.FtpServer, tree: Path) -> None:
-    create = request(ftp.OP_CREATE_FILE, b"/r.bin", seq=40, session=8)
-    write = request(ftp.OP_WRITE_FILE, b"payload", seq=41, session=8)
+    create = request(ftp_wire.OP_CREATE_FILE, b"/r.bin", seq=40, session=8)
+    write = request(ftp_wire.OP_WRITE_FILE, b"payload", seq=41, session=8)
     first = list(server.handle(create, may_write=True))
     assert Reply(first[0]).ack
     assert Reply(next(server.handle(write, may_write=True))).ack
     # the CreateFile arrives again (a duplicate or a retry): repeated, not executed again
     assert list(server.handle(create, may_write=True)) == first
     assert (tree / "r.bin").read_bytes() == b"payload"
-    remove = request(ftp.OP_REMOVE_FILE, b"/r.bin", seq=42, session=8)
+    remove = request(ftp_wire.OP_REMOVE_FILE, b"/r.bin", seq=42, session=8)
     removed = list(server.handle(remove, may_write=True))
     assert list(server.handle(remove, may_write=True)) == removed and Reply(removed[0]).ack
-    mkdir = request(ftp.OP_CREATE_DIRECTORY, b"/m", seq=43, session=8)
+    mkdir = request(ftp_wire.OP_CREATE_DIRECTORY, b"/m", seq=43, session=8)
     assert list(server.handle(mkdir, may_write=True)) == list(server.handle(mkdir, may_write=True))
     # a new seq is a new request
-    again = Reply(next(server.handle(request(ftp.OP_CREATE_DIRECTORY, b"/m", seq=44, session=8),
+    again = Reply(next(server.handle(request(ftp_wire.OP_CREATE_DIRECTORY, b"/m", seq=44, session=8),
                                      may_write=True)))
-    assert again.error == ftp.ERR_FILEEXISTS
+    assert again.error == ftp_wire.ERR_FILEEXISTS
     # the same seq on another session is another client's request
-    other = Reply(next(server.handle(request(ftp.OP_CREATE_DIRECTORY, b"/m", seq=43, session=9),
+    other = Reply(next(server.handle(request(ftp_wire.OP_CREATE_DIRECTORY, b"/m", seq=43, session=9),
                                      may_write=True)))
-    assert other.error == ftp.ERR_FILEEXISTS
+    assert other.error == ftp_wire.ERR_FILEEXISTS
 
 
 def test_no_sessions_available_is_not_remembered(server: ftp.FtpServer) -> None:
     c = Client(server)
     for sid in range(4):
-        assert c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=sid).ack
-    open_again = request(ftp.OP_OPEN_FILE_RO, b"/a.txt", seq=7, session=9)
+        assert c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=sid).ack
+    open_again = request(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", seq=7, session=9)
     busy = Reply(next(server.handle(open_again, may_write=False)))
-    assert busy.error == ftp.ERR_NOSESSIONSAVAILABLE
-    assert c.one(ftp.OP_TERMINATE_SESSION, session=2).ack
+    assert busy.error == ftp_wire.ERR_NOSESSIONSAVAILABLE
+    assert c.one(ftp_wire.OP_TERMINATE_SESSION, session=2).ack
     # MAVSDK sends the very same open again after a while: now there is room
     assert Reply(next(server.handle(open_again, may_write=False))).ack
 
 
 def test_remembered_answers_expire(server: ftp.FtpServer, clock: Clock, tree: Path) -> None:
-    mkdir = request(ftp.OP_CREATE_DIRECTORY, b"/m", seq=1)
+    mkdir = request(ftp_wire.OP_CREATE_DIRECTORY, b"/m", seq=1)
     assert Reply(next(server.handle(mkdir, may_write=True))).ack
     clock.now_s += 11
-    assert Reply(next(server.handle(mkdir, may_write=True))).error == ftp.ERR_FILEEXISTS
+    assert Reply(next(server.handle(mkdir, may_write=True))).error == ftp_wire.ERR_FILEEXISTS
 
 
 def test_reply_seq_wraps(server: ftp.FtpServer) -> None:
-    assert Client(server).one(ftp.OP_NONE, seq=0xFFFF).seq == 0
+    assert Client(server).one(ftp_wire.OP_NONE, seq=0xFFFF).seq == 0
     c = Client(server)
-    c.one(ftp.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin")
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/logs/f1/imu.bin")
     assert [p.seq for p in burst(c, 0, seq=0xFFFE)[:3]] == [0xFFFF, 0, 1]
 
 
 # -- robustness ------------------------------------------------------------------------------------
 
 def test_replies_and_malformed_payloads_never_raise(server: ftp.FtpServer) -> None:
-    assert list(server.handle(request(ftp.OP_ACK), may_write=True)) == []
-    assert list(server.handle(request(ftp.OP_NAK), may_write=True)) == []
+    assert list(server.handle(request(ftp_wire.OP_ACK), may_write=True)) == []
+    assert list(server.handle(request(ftp_wire.OP_NAK), may_write=True)) == []
     assert list(server.handle(b"", may_write=True)) == []
     assert list(server.handle(b"\x01" * 11, may_write=True)) == []
     assert list(server.handle(None, may_write=True)) == []  # type: ignore[arg-type]
     c = Client(server)
-    assert c.one(99).error == ftp.ERR_UNKNOWNCOMMAND
-    assert c.one(ftp.OP_NONE).ack
-    too_big = c.one(ftp.OP_WRITE_FILE, b"x" * 239, size=240)
-    assert too_big.error == ftp.ERR_INVALIDDATASIZE and too_big.req_opcode == ftp.OP_WRITE_FILE
-    short = Reply(next(server.handle(request(ftp.OP_OPEN_FILE_RO, b"/a.txt")[:18],
+    assert c.one(99).error == ftp_wire.ERR_UNKNOWNCOMMAND
+    assert c.one(ftp_wire.OP_NONE).ack
+    too_big = c.one(ftp_wire.OP_WRITE_FILE, b"x" * 239, size=240)
+    assert too_big.error == ftp_wire.ERR_INVALIDDATASIZE and too_big.req_opcode == ftp_wire.OP_WRITE_FILE
+    short = Reply(next(server.handle(request(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt")[:18],
                                      may_write=False)))
     assert short.ack  # MAVLink 2 trims trailing zeros: a short payload is zero-padded
     rng = random.Random(3)
@@ -567,7 +567,7 @@ def test_replies_and_malformed_payloads_never_raise(server: ftp.FtpServer) -> No
         if len(payload) > 3 and rng.random() < 0.8:  # mostly known opcodes, to get past them
             payload = payload[:3] + bytes([rng.randrange(18)]) + payload[4:]
         for reply in server.handle(payload, may_write=rng.random() < 0.5):
-            assert reply is None or len(reply) == ftp.PAYLOAD_LEN
+            assert reply is None or len(reply) == ftp_wire.PAYLOAD_LEN
     assert Client(server).download("/a.txt", session=77) == b"hello"
 
 
@@ -575,23 +575,23 @@ def test_abandoned_iterators_leak_nothing(server: ftp.FtpServer, tree: Path) -> 
     (tree / "long.bin").write_bytes(bytes(100_000))
     baseline = open_fds()
     c = Client(server)
-    c.one(ftp.OP_OPEN_FILE_RO, b"/long.bin", session=1)
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/long.bin", session=1)
     assert open_fds() == baseline + 1  # the session's descriptor
-    replies = server.handle(request(ftp.OP_BURST_READ_FILE, session=1, size=239), may_write=False)
+    replies = server.handle(request(ftp_wire.OP_BURST_READ_FILE, session=1, size=239), may_write=False)
     assert Reply(next(replies)).offset == 0 and Reply(next(replies)).offset == 239
     del replies  # abandoned: the caller just drops it
-    crc = server.handle(request(ftp.OP_CALC_FILE_CRC32, b"/long.bin"), may_write=False)
+    crc = server.handle(request(ftp_wire.OP_CALC_FILE_CRC32, b"/long.bin"), may_write=False)
     assert next(crc) is None
     del crc
     assert open_fds() == baseline + 1
     # a burst still pending when its session closes stops quietly
-    pending = server.handle(request(ftp.OP_BURST_READ_FILE, session=1), may_write=False)
+    pending = server.handle(request(ftp_wire.OP_BURST_READ_FILE, session=1), may_write=False)
     assert Reply(next(pending)).ack
-    assert c.one(ftp.OP_TERMINATE_SESSION, session=1).ack
+    assert c.one(ftp_wire.OP_TERMINATE_SESSION, session=1).ack
     assert list(pending) == []
     assert open_fds() == baseline
-    c.one(ftp.OP_OPEN_FILE_RO, b"/long.bin", session=2)
-    c.one(ftp.OP_OPEN_FILE_RO, b"/a.txt", session=3)
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/long.bin", session=2)
+    c.one(ftp_wire.OP_OPEN_FILE_RO, b"/a.txt", session=3)
     server.close()
     assert open_fds() == baseline
 

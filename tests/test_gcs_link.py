@@ -1,6 +1,6 @@
 """Links: several ground stations, ground stations that come back, TCP, serial, garbage, tlog.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -19,10 +19,10 @@ from pathlib import Path
 
 from conftest import free_tcp_port, free_udp_port, wait_for
 from pymavlink import mavutil
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+from gcs_bridge.params import codec as param_codec
 
 GCS_HB = mavlink.MAVLink_heartbeat_message(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
                                            0, 0, 0, 3)

@@ -4,7 +4,7 @@ The flight root holds two flights: an older finished one (a ~300 kB random imu.b
 text file) and the one being recorded (the vehicle's flight_dir, where the bridge's tlog grows).
 MAVProxy 1.8.75 runs as a separate process (driver shared with test_gcs_mavproxy.py); the error
 paths, the pacing and the abandonment of a download whose client vanished are checked with a
-minimal pymavlink ground station (`gcs_bridge.testing.MiniGcs`).
+minimal pymavlink ground station (`support.synthetic_vehicle.MiniGcs`).
 """
 
 from __future__ import annotations
@@ -19,16 +19,16 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 # the MAVProxy driver (commands on stdin, output collected line by line) is shared
 from test_gcs_mavproxy import MavProxy
 
 from companion.logs.archive import FlightArchive
-from gcs_bridge import ftp
 from gcs_bridge.dialect import mavlink
 from gcs_bridge.link import PEER_SILENCE_S
-from gcs_bridge.logserver import ALL_BYTES, LOG_DATA_LEN
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+from gcs_bridge.services import ftp_wire
+from gcs_bridge.services.log_download import ALL_BYTES, LOG_DATA_LEN
 
 OLD = "20261123T100000Z"  # the finished flight
 CUR = "20261124T120000Z"  # the flight being recorded (the vehicle's flight_dir)
@@ -163,26 +163,26 @@ def vehicle_and_gcs(tmp_path: Path, imu_bytes: int = IMU_BYTES) -> Iterator[Setu
 def ftp_call(s: Setup, seq: int, opcode: int, *, session: int = 0, offset: int = 0,
              data: bytes = b"", size: int | None = None) -> tuple[tuple[int, ...], bytes]:
     """One FTP request over the link; the reply's header fields and data."""
-    payload = ftp.HEADER.pack(seq, session, opcode, len(data) if size is None else size, 0, 0, 0,
+    payload = ftp_wire.HEADER.pack(seq, session, opcode, len(data) if size is None else size, 0, 0, 0,
                               offset) + data
     s.gcs.send(mavlink.MAVLink_file_transfer_protocol_message(
-        0, s.target[0], s.target[1], list(payload.ljust(ftp.PAYLOAD_LEN, b"\0"))))
+        0, s.target[0], s.target[1], list(payload.ljust(ftp_wire.PAYLOAD_LEN, b"\0"))))
 
     def answers(m: Any) -> bool:
-        return ftp.HEADER.unpack_from(bytes(m.payload))[0] == (seq + 1) & 0xFFFF
+        return ftp_wire.HEADER.unpack_from(bytes(m.payload))[0] == (seq + 1) & 0xFFFF
 
     reply = s.gcs.recv(5.0, "FILE_TRANSFER_PROTOCOL", answers)
     assert reply is not None, f"no FTP reply to opcode {opcode} seq {seq}"
     assert (reply.target_system, reply.target_component) == (255, 190)
     raw = bytes(reply.payload)
-    head = ftp.HEADER.unpack_from(raw)
-    return head, raw[ftp.HEADER.size:ftp.HEADER.size + head[3]]
+    head = ftp_wire.HEADER.unpack_from(raw)
+    return head, raw[ftp_wire.HEADER.size:ftp_wire.HEADER.size + head[3]]
 
 
 def assert_nak(reply: tuple[tuple[int, ...], bytes], request_opcode: int, session: int,
                error: int) -> None:
     (_seq, r_session, opcode, _size, req_opcode, _burst, _pad, _ofs), data = reply
-    assert opcode == ftp.OP_NAK, reply
+    assert opcode == ftp_wire.OP_NAK, reply
     assert req_opcode == request_opcode and r_session == session, reply
     assert data[:1] == bytes([error]), f"NAK error {data[:1]!r}, expected {error}"
 
@@ -190,32 +190,32 @@ def assert_nak(reply: tuple[tuple[int, ...], bytes], request_opcode: int, sessio
 def test_ftp_error_paths_over_the_link(tmp_path: Path) -> None:
     with vehicle_and_gcs(tmp_path) as s:
         # a read on a session never opened
-        assert_nak(ftp_call(s, 10, ftp.OP_READ_FILE, session=7, size=ftp.DATA_LEN),
-                   ftp.OP_READ_FILE, 7, ftp.ERR_INVALIDSESSION)
+        assert_nak(ftp_call(s, 10, ftp_wire.OP_READ_FILE, session=7, size=ftp_wire.DATA_LEN),
+                   ftp_wire.OP_READ_FILE, 7, ftp_wire.ERR_INVALIDSESSION)
 
         # open a real file, read it, then read past its end
         notes = (s.flights.old / "notes.txt").read_bytes()
-        head, data = ftp_call(s, 20, ftp.OP_OPEN_FILE_RO, session=3,
+        head, data = ftp_call(s, 20, ftp_wire.OP_OPEN_FILE_RO, session=3,
                               data=f"/{OLD}/notes.txt".encode())
-        assert head[2] == ftp.OP_ACK and data == len(notes).to_bytes(4, "little"), (head, data)
-        head, data = ftp_call(s, 22, ftp.OP_READ_FILE, session=3, size=ftp.DATA_LEN)
-        assert head[2] == ftp.OP_ACK and data == notes
-        assert_nak(ftp_call(s, 24, ftp.OP_READ_FILE, session=3, offset=10_000,
-                            size=ftp.DATA_LEN), ftp.OP_READ_FILE, 3, ftp.ERR_EOF)
-        head, _ = ftp_call(s, 26, ftp.OP_TERMINATE_SESSION, session=3)
-        assert head[2] == ftp.OP_ACK
+        assert head[2] == ftp_wire.OP_ACK and data == len(notes).to_bytes(4, "little"), (head, data)
+        head, data = ftp_call(s, 22, ftp_wire.OP_READ_FILE, session=3, size=ftp_wire.DATA_LEN)
+        assert head[2] == ftp_wire.OP_ACK and data == notes
+        assert_nak(ftp_call(s, 24, ftp_wire.OP_READ_FILE, session=3, offset=10_000,
+                            size=ftp_wire.DATA_LEN), ftp_wire.OP_READ_FILE, 3, ftp_wire.ERR_EOF)
+        head, _ = ftp_call(s, 26, ftp_wire.OP_TERMINATE_SESSION, session=3)
+        assert head[2] == ftp_wire.OP_ACK
 
         # a file that does not exist, and a path climbing out of the flight root
-        assert_nak(ftp_call(s, 30, ftp.OP_OPEN_FILE_RO, session=4,
+        assert_nak(ftp_call(s, 30, ftp_wire.OP_OPEN_FILE_RO, session=4,
                             data=f"/{OLD}/missing.bin".encode()),
-                   ftp.OP_OPEN_FILE_RO, 4, ftp.ERR_FILENOTFOUND)
-        assert_nak(ftp_call(s, 32, ftp.OP_OPEN_FILE_RO, session=5, data=b"/../etc/passwd"),
-                   ftp.OP_OPEN_FILE_RO, 5, ftp.ERR_FILENOTFOUND)
+                   ftp_wire.OP_OPEN_FILE_RO, 4, ftp_wire.ERR_FILENOTFOUND)
+        assert_nak(ftp_call(s, 32, ftp_wire.OP_OPEN_FILE_RO, session=5, data=b"/../etc/passwd"),
+                   ftp_wire.OP_OPEN_FILE_RO, 5, ftp_wire.ERR_FILENOTFOUND)
 
         # a write on a link without a key
-        assert_nak(ftp_call(s, 40, ftp.OP_CREATE_FILE, session=6,
+        assert_nak(ftp_call(s, 40, ftp_wire.OP_CREATE_FILE, session=6,
                             data=f"/{OLD}/new.txt".encode()),
-                   ftp.OP_CREATE_FILE, 6, ftp.ERR_FILEPROTECTED)
+                   ftp_wire.OP_CREATE_FILE, 6, ftp_wire.ERR_FILEPROTECTED)
         assert not (s.flights.old / "new.txt").exists()
 
 

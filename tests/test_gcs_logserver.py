@@ -15,7 +15,7 @@ import pytest
 
 from companion.logs.archive import FlightArchive
 from gcs_bridge.dialect import Identity, mavlink
-from gcs_bridge.logserver import ALL_BYTES, PIECE_MESSAGES, LogServer, first_log_id
+from gcs_bridge.services.log_download import ALL_BYTES, PIECE_MESSAGES, LogServer, first_log_id
 
 T0 = 1_714_558_953  # 2024-05-01T10:22:33Z
 STAMPS = ["20240501T102233Z", "20240502T080000Z", "20240503T120000Z-1"]
@@ -281,7 +281,7 @@ def test_a_flight_gone_during_a_download_ends_the_data_with_a_logged_error(
     server = LogServer(tmp_path, lambda: None)
     entries(server)
     (dirs[2] / "imu.bin").unlink()
-    with caplog.at_level(logging.ERROR, logger="gcs_bridge.logserver"):
+    with caplog.at_level(logging.ERROR, logger="gcs_bridge.services.log_download"):
         msgs = data_messages(server, 2, 0, ALL_BYTES)
     assert msgs == [] or msgs[-1].ofs < 512 * 2  # only the headers before the vanished file
     assert any("imu.bin: vanished" in r.getMessage() for r in caplog.records)
@@ -298,7 +298,7 @@ def test_erase_keeps_the_flight_being_recorded(tmp_path: Path,
     (root / "20230101T000000Z").symlink_to(outside)
     server = LogServer(root, lambda: dirs[1])
     assert len(entries(server)) == 3
-    with caplog.at_level(logging.INFO, logger="gcs_bridge.logserver"):
+    with caplog.at_level(logging.INFO, logger="gcs_bridge.services.log_download"):
         erased, text = server.erase()
     assert erased == 2 and text == "Erased 2 flights, current flight kept" and len(text) <= 50
     assert sorted(p.name for p in root.iterdir()) == sorted(

@@ -1,6 +1,6 @@
 """MAVSDK 4.1 (the native Python binding) against the bridge on a SyntheticVehicle, over UDP.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -23,9 +23,9 @@ from conftest import free_udp_port, quiet_mavsdk, wait_for
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.param.param import Param, ParamError, ParamResult
 from mavsdk.plugins.telemetry.telemetry import Telemetry
+from support.synthetic_vehicle import ORIGIN, SyntheticVehicle, circle_state
 
 from companion.core.params import ParamType, float_param, int_param, to_float32
-from gcs_bridge.testing import ORIGIN, SyntheticVehicle, circle_state
 
 EXTRA = [
     int_param("TST_BIG", 0, -(2**31), 2**31 - 1, "", "full int32 range"),

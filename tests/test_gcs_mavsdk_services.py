@@ -25,6 +25,7 @@ from mavsdk.plugins.ftp.ftp import FilesystemEntry, Ftp, FtpError, FtpResult
 from mavsdk.plugins.log_files.log_files import LogFiles, LogFilesResult
 from mavsdk.plugins.shell.shell import Device, Shell
 from mavsdk.plugins.telemetry.telemetry import Telemetry
+from support.synthetic_vehicle import SyntheticVehicle
 
 # the MAVSDK connection helper is shared with the synthetic-vehicle MAVSDK tests
 from test_gcs_mavsdk import mavsdk_on
@@ -32,8 +33,7 @@ from test_gcs_mavsdk import mavsdk_on
 from companion.logs.archive import FlightArchive
 from companion.logs.cli import main as logs_main
 from companion.logs.writer import LogService
-from gcs_bridge.console import PROMPT
-from gcs_bridge.testing import SyntheticVehicle
+from gcs_bridge.services.console import PROMPT
 
 OLD = "20261123T100000Z"
 CURRENT = "20261124T120000Z"

@@ -25,7 +25,7 @@ from pymavlink.generator.mavcrc import x25crc
 from companion.core.config import Config
 from companion.core.params import ParamSpec, ParamType, float_param, format_value, int_param
 from companion.runtime import declared_registry
-from gcs_bridge import dialect, metadata
+from gcs_bridge import dialect
 from gcs_bridge.dialect import (
     EXTRA_MESSAGES,
     MSG_ID_PROTOCOL_VERSION,
@@ -38,11 +38,12 @@ from gcs_bridge.dialect import (
     message_id,
     message_name,
 )
-from gcs_bridge.metadata import (
+from gcs_bridge.services import metadata
+from gcs_bridge.services.ftp_wire import mavlink_crc32
+from gcs_bridge.services.metadata import (
     GENERAL_PATH,
     PARAMETERS_PATH,
     ComponentMetadata,
-    mavlink_crc32,
     normalize_path,
     split_description,
 )

@@ -1,6 +1,6 @@
 """The MAVLink parameter protocol with a raw MAVLink 2 client, against a SyntheticVehicle.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -17,11 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.params import ParamType, float_param, int_param, to_float32
-from gcs_bridge import param_codec
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
+from gcs_bridge.params import codec as param_codec
 
 EXTRA = [
     int_param("TST_BIG", 0, -(2**31), 2**31 - 1, "", "full int32 range"),

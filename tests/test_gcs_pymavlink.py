@@ -1,6 +1,6 @@
 """pymavlink's own client API (`mavutil`), as ground-station scripts use it, against the bridge.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 from conftest import free_udp_port, wait_for
 from pymavlink import mavutil
+from support.synthetic_vehicle import SyntheticVehicle
 
 from companion.core.params import float_param, int_param
 from gcs_bridge.signing import new_key_file
-from gcs_bridge.testing import SyntheticVehicle
 
 EXTRA = [
     int_param("TST_BIG", 0, -(2**31), 2**31 - 1, "", "full int32 range"),

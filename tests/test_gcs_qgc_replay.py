@@ -37,10 +37,10 @@ from typing import Any
 
 import pytest
 from conftest import free_udp_port
+from support.synthetic_vehicle import SyntheticVehicle
 
 from companion.core.params import int_param
 from gcs_bridge.dialect import mavlink
-from gcs_bridge.testing import SyntheticVehicle
 
 # --------------------------------------------------------------------- QGC's numbers
 QGC_SYSID, QGC_COMPID = 255, 190  # QGC's default system id; MAV_COMP_ID_MISSIONPLANNER

@@ -1,6 +1,6 @@
 """MAVLink 2 signing: writes must be signed, reads per link, refusals counted and never acted on.
 
-Every test runs the MAVLink bridge on a `gcs_bridge.testing.SyntheticVehicle`: synthetic
+Every test runs the MAVLink bridge on a `support.synthetic_vehicle.SyntheticVehicle`: synthetic
 vehicle state (an aircraft in a steady banked circle) under a real ThreadManager, in this
 process. No drivers, estimator, control law or simulator run, and the parameters are only
 the manager's, the synthetic threads' and the bridge's (not the runtime's set) plus the
@@ -25,11 +25,13 @@ from typing import Any
 import pytest
 from conftest import free_udp_port, wait_for
 from pymavlink import mavutil
+from support.synthetic_vehicle import MiniGcs, SyntheticVehicle
 
 from companion.core.params import float_param
-from gcs_bridge import ftp, param_codec
 from gcs_bridge.commands import CMD_RESTART_THREAD
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
+from gcs_bridge.services import ftp_wire
 from gcs_bridge.signing import (
     NEW_STREAM_WINDOW,
     KeyFileError,
@@ -38,7 +40,6 @@ from gcs_bridge.signing import (
     new_key_file,
     signing_timestamp,
 )
-from gcs_bridge.testing import MiniGcs, SyntheticVehicle
 
 EXTRA = [float_param("TST_F", 1.5, -10.0, 10.0, "m", "a float")]
 
@@ -417,16 +418,16 @@ def test_a_forged_far_future_timestamp_does_not_lock_out_the_ground_station(tmp_
 def ftp_call(gcs: MiniGcs, seq: int, opcode: int, *, session: int = 0, data: bytes = b"",
              offset: int = 0, timeout_s: float = 3.0) -> tuple[int, int, bytes] | None:
     """One FTP request; (opcode, request opcode, data) of the reply, or None if none came."""
-    payload = ftp.HEADER.pack(seq, session, opcode, len(data), 0, 0, 0, offset) + data
+    payload = ftp_wire.HEADER.pack(seq, session, opcode, len(data), 0, 0, 0, offset) + data
     gcs.send(mavlink.MAVLink_file_transfer_protocol_message(
-        0, 1, 1, list(payload.ljust(ftp.PAYLOAD_LEN, b"\0"))))
+        0, 1, 1, list(payload.ljust(ftp_wire.PAYLOAD_LEN, b"\0"))))
     reply = gcs.recv(timeout_s, "FILE_TRANSFER_PROTOCOL",
-                     lambda m: ftp.HEADER.unpack_from(bytes(m.payload))[0] == (seq + 1) & 0xFFFF)
+                     lambda m: ftp_wire.HEADER.unpack_from(bytes(m.payload))[0] == (seq + 1) & 0xFFFF)
     if reply is None:
         return None
     raw = bytes(reply.payload)
-    _seq, _session, op, size, req_op, *_ = ftp.HEADER.unpack_from(raw)
-    return op, req_op, raw[ftp.HEADER.size:ftp.HEADER.size + size]
+    _seq, _session, op, size, req_op, *_ = ftp_wire.HEADER.unpack_from(raw)
+    return op, req_op, raw[ftp_wire.HEADER.size:ftp_wire.HEADER.size + size]
 
 
 def console_line(line: str) -> mavlink.MAVLink_serial_control_message:
@@ -470,20 +471,20 @@ def test_no_unsigned_frame_changes_the_aircraft(tmp_path: Path) -> None:
         # writing opcode that was not signed with the key
         target = f"/{OLD_FLIGHT}/notes.txt".encode()
         for seq, (opcode, data) in enumerate([
-                (ftp.OP_CREATE_FILE, f"/{OLD_FLIGHT}/new.bin".encode()),
-                (ftp.OP_OPEN_FILE_WO, target), (ftp.OP_TRUNCATE_FILE, target),
-                (ftp.OP_REMOVE_FILE, target), (ftp.OP_CREATE_DIRECTORY, f"/{OLD_FLIGHT}/d".encode()),
-                (ftp.OP_REMOVE_DIRECTORY, f"/{OLD_FLIGHT}".encode()),
-                (ftp.OP_RENAME, target + b"\0" + f"/{OLD_FLIGHT}/moved.txt".encode())]):
+                (ftp_wire.OP_CREATE_FILE, f"/{OLD_FLIGHT}/new.bin".encode()),
+                (ftp_wire.OP_OPEN_FILE_WO, target), (ftp_wire.OP_TRUNCATE_FILE, target),
+                (ftp_wire.OP_REMOVE_FILE, target), (ftp_wire.OP_CREATE_DIRECTORY, f"/{OLD_FLIGHT}/d".encode()),
+                (ftp_wire.OP_REMOVE_DIRECTORY, f"/{OLD_FLIGHT}".encode()),
+                (ftp_wire.OP_RENAME, target + b"\0" + f"/{OLD_FLIGHT}/moved.txt".encode())]):
             reply = ftp_call(unsigned, 10 * seq, opcode, session=seq, data=data)
-            assert reply is not None and reply[:2] == (ftp.OP_NAK, opcode), (opcode, reply)
-            assert reply[2][:1] == bytes([ftp.ERR_FILEPROTECTED]), (opcode, reply)
+            assert reply is not None and reply[:2] == (ftp_wire.OP_NAK, opcode), (opcode, reply)
+            assert reply[2][:1] == bytes([ftp_wire.ERR_FILEPROTECTED]), (opcode, reply)
         # a write into a session the signed ground station opened is refused unsigned as well
-        created = ftp_call(signed, 100, ftp.OP_CREATE_FILE, session=9,
+        created = ftp_call(signed, 100, ftp_wire.OP_CREATE_FILE, session=9,
                            data=f"/{OLD_FLIGHT}/signed.bin".encode())
-        assert created is not None and created[0] == ftp.OP_ACK, created
-        reply = ftp_call(unsigned, 110, ftp.OP_WRITE_FILE, session=9, data=b"forged")
-        assert reply is not None and reply[:2] == (ftp.OP_NAK, ftp.OP_WRITE_FILE), reply
+        assert created is not None and created[0] == ftp_wire.OP_ACK, created
+        reply = ftp_call(unsigned, 110, ftp_wire.OP_WRITE_FILE, session=9, data=b"forged")
+        assert reply is not None and reply[:2] == (ftp_wire.OP_NAK, ftp_wire.OP_WRITE_FILE), reply
         assert (root / OLD_FLIGHT / "signed.bin").read_bytes() == b""
         # nothing happened
         unsigned.collect(0.3)  # whatever answer there would be

@@ -14,8 +14,9 @@ from companion.core.state import EstimatorState, GpsFix, ImuSample, ImuSlowSampl
 from companion.estimation.thread import EstimatorThread
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge import status, streams, telemetry
-from gcs_bridge.core import BRIDGE_PARAMS, UINT16_MAX, BridgeCore
-from gcs_bridge.dialect import Identity, mavlink
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
+from gcs_bridge.dialect import UINT16_MAX, Identity, mavlink
+from gcs_bridge.runtime_view import BridgeCore
 
 ORIGIN = (43.7, 10.4, 50.0)
 

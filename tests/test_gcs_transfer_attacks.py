@@ -25,14 +25,15 @@ from pathlib import Path
 from typing import Any
 
 from conftest import free_udp_port, wait_for
+from support.synthetic_vehicle import SyntheticVehicle
 
 from companion.logs.archive import FlightArchive
-from gcs_bridge import bulk, ftp
+from gcs_bridge import bulk
 from gcs_bridge.dialect import Message, mavlink
 from gcs_bridge.link import PEER_SILENCE_S, Link
-from gcs_bridge.logserver import ALL_BYTES, LOG_DATA_LEN
-from gcs_bridge.services import UNKNOWN_LOG_REPORT_S
-from gcs_bridge.testing import SyntheticVehicle
+from gcs_bridge.services import ftp_wire
+from gcs_bridge.services.link_services import UNKNOWN_LOG_REPORT_S
+from gcs_bridge.services.log_download import ALL_BYTES, LOG_DATA_LEN
 
 OLD = "20261123T100000Z"
 CUR = "20261124T120000Z"
@@ -174,15 +175,15 @@ class Attackers:
 
 def ftp_msg(opcode: int, *, seq: int = 0, session: int = 0, offset: int = 0,
             data: bytes = b"", size: int | None = None) -> Message:
-    payload = ftp.HEADER.pack(seq & 0xFFFF, session & 0xFF, opcode,
+    payload = ftp_wire.HEADER.pack(seq & 0xFFFF, session & 0xFF, opcode,
                               len(data) if size is None else size, 0, 0, 0,
                               offset & 0xFFFFFFFF) + data
     return mavlink.MAVLink_file_transfer_protocol_message(
-        0, 1, 1, list(payload[:ftp.PAYLOAD_LEN].ljust(ftp.PAYLOAD_LEN, b"\0")))
+        0, 1, 1, list(payload[:ftp_wire.PAYLOAD_LEN].ljust(ftp_wire.PAYLOAD_LEN, b"\0")))
 
 
 def ftp_head(m: Any) -> tuple[int, ...]:
-    return tuple(ftp.HEADER.unpack_from(bytes(m.payload)))
+    return tuple(ftp_wire.HEADER.unpack_from(bytes(m.payload)))
 
 
 # ============================================================================ the vehicle
@@ -392,18 +393,18 @@ def test_ftp_floods_are_bounded_and_answered_within_the_budget(tmp_path: Path) -
     with vehicle(tmp_path) as s:
         path = f"/{OLD}/imu.bin".encode()
         requests: list[Callable[[int], Message]] = [
-            lambda n: ftp_msg(ftp.OP_OPEN_FILE_RO, seq=n, session=n, data=path),
-            lambda n: ftp_msg(ftp.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/" + b"x" * 238),
-            lambda n: ftp_msg(ftp.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/../../etc/passwd"),
-            lambda n: ftp_msg(ftp.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/nope/none.bin"),
-            lambda n: ftp_msg(ftp.OP_READ_FILE, seq=n, session=n, offset=2**32 - 1, size=239),
-            lambda n: ftp_msg(ftp.OP_READ_FILE, seq=n, session=n, size=240 + n % 16),
-            lambda n: ftp_msg(ftp.OP_BURST_READ_FILE, seq=n, session=n, offset=10**9, size=239),
-            lambda n: ftp_msg(ftp.OP_BURST_READ_FILE, seq=n, session=n, size=255),
-            lambda n: ftp_msg(ftp.OP_BURST_READ_FILE, seq=n, session=n, size=239),
-            lambda n: ftp_msg(ftp.OP_LIST_DIRECTORY, seq=n, session=n, data=b"/"),
-            lambda n: ftp_msg(ftp.OP_LIST_DIRECTORY_WITH_TIME, seq=n, data=f"/{OLD}".encode()),
-            lambda n: ftp_msg(ftp.OP_LIST_DIRECTORY, seq=n, offset=2**32 - 1, data=b"/"),
+            lambda n: ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=n, session=n, data=path),
+            lambda n: ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/" + b"x" * 238),
+            lambda n: ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/../../etc/passwd"),
+            lambda n: ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=n, session=n, data=b"/nope/none.bin"),
+            lambda n: ftp_msg(ftp_wire.OP_READ_FILE, seq=n, session=n, offset=2**32 - 1, size=239),
+            lambda n: ftp_msg(ftp_wire.OP_READ_FILE, seq=n, session=n, size=240 + n % 16),
+            lambda n: ftp_msg(ftp_wire.OP_BURST_READ_FILE, seq=n, session=n, offset=10**9, size=239),
+            lambda n: ftp_msg(ftp_wire.OP_BURST_READ_FILE, seq=n, session=n, size=255),
+            lambda n: ftp_msg(ftp_wire.OP_BURST_READ_FILE, seq=n, session=n, size=239),
+            lambda n: ftp_msg(ftp_wire.OP_LIST_DIRECTORY, seq=n, session=n, data=b"/"),
+            lambda n: ftp_msg(ftp_wire.OP_LIST_DIRECTORY_WITH_TIME, seq=n, data=f"/{OLD}".encode()),
+            lambda n: ftp_msg(ftp_wire.OP_LIST_DIRECTORY, seq=n, offset=2**32 - 1, data=b"/"),
         ]
 
         def request(n: int) -> Message:
@@ -424,16 +425,16 @@ def test_ftp_floods_are_bounded_and_answered_within_the_budget(tmp_path: Path) -
         assert worst <= budget_limit_bytes(), f"{worst} bytes in one second"
         assert len(reads) == 2 and all(r is not None for r in reads), reads
         naks = [ftp_head(r.msg) for r in rx if r.msg.get_type() == "FILE_TRANSFER_PROTOCOL"
-                and ftp_head(r.msg)[2] == ftp.OP_NAK]
+                and ftp_head(r.msg)[2] == ftp_wire.OP_NAK]
         assert naks, "no NAK at all: the flood was not answered"
         # the queue drains, and a client that reuses a session (MAVSDK: always 0) gets it back
         assert wait_for(lambda: not s.link.bulk.busy(), 5.0, 0.02)
         t2 = time.monotonic()
-        s.good.send(ftp_msg(ftp.OP_OPEN_FILE_RO, seq=40_000, session=0, data=path))
+        s.good.send(ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=40_000, session=0, data=path))
         got = s.good.wait(lambda m: m.get_type() == "FILE_TRANSFER_PROTOCOL"
                           and m.target_system == GOOD_SYSID and ftp_head(m)[0] == 40_001,
                           5.0, t2)
-        assert got is not None and ftp_head(got.msg)[2] == ftp.OP_ACK, \
+        assert got is not None and ftp_head(got.msg)[2] == ftp_wire.OP_ACK, \
             got and ftp_head(got.msg)
 
 
@@ -445,7 +446,7 @@ def test_a_crc_flood_does_not_stall_telemetry(tmp_path: Path) -> None:
         path = f"/{OLD}/big.bin".encode()
 
         def request(n: int) -> Message:
-            return ftp_msg(ftp.OP_CALC_FILE_CRC32, seq=n, session=n % 4, data=path)
+            return ftp_msg(ftp_wire.OP_CALC_FILE_CRC32, seq=n, session=n % 4, data=path)
 
         t0 = time.monotonic()
         reads: list[float | None] = []
@@ -466,13 +467,13 @@ def test_a_crc_flood_does_not_stall_telemetry(tmp_path: Path) -> None:
         # the flood over, one CRC of the whole file is answered, right, in bounded time
         assert wait_for(lambda: not s.link.bulk.busy(), 5.0, 0.02)
         t2 = time.monotonic()
-        s.good.send(ftp_msg(ftp.OP_CALC_FILE_CRC32, seq=50_000, session=9, data=path))
+        s.good.send(ftp_msg(ftp_wire.OP_CALC_FILE_CRC32, seq=50_000, session=9, data=path))
         got = s.good.wait(lambda m: m.get_type() == "FILE_TRANSFER_PROTOCOL"
                           and m.target_system == GOOD_SYSID and ftp_head(m)[0] == 50_001,
                           10.0, t2)
         assert got is not None, "no answer to a CRC request"
-        assert ftp_head(got.msg)[2] == ftp.OP_ACK, ftp_head(got.msg)
-        expected = ftp.mavlink_crc32(bytes(64 << 20))
+        assert ftp_head(got.msg)[2] == ftp_wire.OP_ACK, ftp_head(got.msg)
+        expected = ftp_wire.mavlink_crc32(bytes(64 << 20))
         assert bytes(got.msg.payload)[12:16] == expected.to_bytes(4, "little")
         print(f"one CRC of 64 MB: {got.t_s - t2:.2f} s")
 
@@ -488,11 +489,11 @@ def test_a_vanishing_ground_station_is_dropped_and_another_downloads_at_full_bud
         t0 = time.monotonic()
         gone.heartbeat()
         gone.send(mavlink.MAVLink_log_request_data_message(1, 1, 0, 0, ALL_BYTES))
-        gone.send(ftp_msg(ftp.OP_OPEN_FILE_RO, seq=10, session=2, data=f"/{OLD}/imu.bin".encode()))
+        gone.send(ftp_msg(ftp_wire.OP_OPEN_FILE_RO, seq=10, session=2, data=f"/{OLD}/imu.bin".encode()))
         opened = gone.wait(lambda m: m.get_type() == "FILE_TRANSFER_PROTOCOL"
                            and ftp_head(m)[0] == 11, 5.0, t0)
-        assert opened is not None and ftp_head(opened.msg)[2] == ftp.OP_ACK
-        gone.send(ftp_msg(ftp.OP_BURST_READ_FILE, seq=12, session=2, size=239))
+        assert opened is not None and ftp_head(opened.msg)[2] == ftp_wire.OP_ACK
+        gone.send(ftp_msg(ftp_wire.OP_BURST_READ_FILE, seq=12, session=2, size=239))
         last_heard = time.monotonic()
         assert gone.wait(lambda m: m.get_type() == "FILE_TRANSFER_PROTOCOL"
                          and ftp_head(m)[0] == 13, 5.0, t0) is not None

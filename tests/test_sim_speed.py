@@ -3,10 +3,10 @@
 At 20x a watchdog window of 2000 ms is 100 ms of host time. A bridge thread whose wait is fixed
 in host time (a 0.1 s socket timeout) can let a whole window pass without a completed cycle and
 be restarted for nothing; every bridge wait is therefore in the runtime's clock and a quarter
-of the thread's watchdog period at most (see legacy_protocol.adapter and gcs_bridge.link). The
-IMU's 500 ms window would be 25 ms of host time, shorter than a busy machine may keep a healthy
-thread waiting: a window lasts at least `MIN_WINDOW_HOST_S` of host time
-(companion.watchdog.manager).
+of the thread's watchdog period at most (see legacy_protocol.adapter and
+gcs_bridge.link_threads). The IMU's 500 ms window would be 25 ms of host time, shorter than a
+busy machine may keep a healthy thread waiting: a window lasts at least `MIN_WINDOW_HOST_S` of
+host time (companion.watchdog.manager).
 """
 
 from __future__ import annotations

@@ -5,6 +5,9 @@ state slots at the real devices' rates (IMU 100 Hz, GPS 10 Hz, servo board 50 Hz
 100 Hz) for an aircraft flying a steady banked circle; `SyntheticVehicle` runs them with a
 `MavlinkBridge` under a real `ThreadManager` in a background thread, so tests talk to it with
 real ground-station clients over loopback.
+
+Test support, not product: it lives in tests/support/ (see that package's docstring) so the
+wheel does not ship it, and both tests/ and bench/ import it as `support.synthetic_vehicle`.
 """
 
 from __future__ import annotations

@@ -36,7 +36,6 @@ import json
 import logging
 import re
 import threading
-import zlib
 from collections.abc import Callable
 from typing import Any
 
@@ -45,6 +44,7 @@ from gcs_bridge.dialect import (
     COMP_METADATA_TYPE_PARAMETER,
     ComponentMetadataMessage,
 )
+from gcs_bridge.services.ftp_wire import mavlink_crc32
 
 log = logging.getLogger(__name__)
 
@@ -75,12 +75,6 @@ _VERSION_RE = re.compile(r"^\d+\.\d+\.\d+(\.\d+)?$")
 _SENTENCE_END_RE = re.compile(r"(?<=[.!?])\s+(?=[A-Z0-9`(\[\"'])")
 _ABBREVIATIONS = {"e.g.", "i.e.", "ch.", "cf.", "vs.", "etc.", "approx.", "fig.", "eq.", "no.",
                   "resp.", "sec.", "min.", "max."}
-
-
-def mavlink_crc32(data: bytes) -> int:
-    """MAVLink's CRC32 (MAVLink FTP, component metadata): the reflected 0xEDB88320 CRC with
-    initial value 0 and no final XOR, i.e. zlib's CRC32 without its two inversions."""
-    return (zlib.crc32(data, 0xFFFFFFFF) ^ 0xFFFFFFFF) & 0xFFFFFFFF
 
 
 def mftp_uri(compid: int, path: str) -> str:

@@ -9,8 +9,7 @@ import threading
 import time
 from collections.abc import Hashable
 
-from gcs_bridge.endpoints import Endpoint
-from gcs_bridge.transport import (
+from gcs_bridge.transports.base import (
     MAX_PEERS,
     RECV_BATCH,
     UDP_PEER_TIMEOUT_S,
@@ -19,6 +18,7 @@ from gcs_bridge.transport import (
     TransportError,
     quiet_close,
 )
+from gcs_bridge.transports.endpoints import Endpoint
 
 log = logging.getLogger(__name__)
 

@@ -35,8 +35,8 @@ from dataclasses import dataclass, field
 from companion.core.params import ParamError, ParamSpec, format_value
 from companion.watchdog import ManagerCommand
 from companion.watchdog.thread import ThreadStatus
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import Message, RxMessage, mavlink
+from gcs_bridge.runtime_view import BridgeCore
 
 log = logging.getLogger(__name__)
 

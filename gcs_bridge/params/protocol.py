@@ -12,9 +12,9 @@ import logging
 from dataclasses import dataclass
 
 from companion.core.params import ParamError, ParamErrorKind, ParamSpec
-from gcs_bridge import param_codec
-from gcs_bridge.core import BridgeCore
 from gcs_bridge.dialect import mavlink
+from gcs_bridge.params import codec as param_codec
+from gcs_bridge.runtime_view import BridgeCore
 
 log = logging.getLogger(__name__)
 

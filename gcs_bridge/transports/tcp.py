@@ -7,8 +7,7 @@ import socket
 import threading
 import time
 
-from gcs_bridge.endpoints import Endpoint
-from gcs_bridge.transport import (
+from gcs_bridge.transports.base import (
     MAX_PEERS,
     RECONNECT_MAX_S,
     RECONNECT_MIN_S,
@@ -18,6 +17,7 @@ from gcs_bridge.transport import (
     TransportError,
     quiet_close,
 )
+from gcs_bridge.transports.endpoints import Endpoint
 
 log = logging.getLogger(__name__)
 

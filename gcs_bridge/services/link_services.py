@@ -25,18 +25,19 @@ import logging
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from gcs_bridge import status
-from gcs_bridge.console import Console
+from gcs_bridge.bulk import BulkSender
+from gcs_bridge.dialect import Identity, RxMessage, mavlink
 from gcs_bridge.dialect import Message as Msg
-from gcs_bridge.dialect import RxMessage, mavlink
-from gcs_bridge.ftp import PAYLOAD_LEN, FtpServer
-from gcs_bridge.logserver import LogServer, first_log_id
-from gcs_bridge.metadata import ComponentMetadata
-
-if TYPE_CHECKING:
-    from gcs_bridge.link import Link
+from gcs_bridge.runtime_view import BridgeCore
+from gcs_bridge.services.console import Console
+from gcs_bridge.services.ftp import FtpServer
+from gcs_bridge.services.ftp_wire import PAYLOAD_LEN
+from gcs_bridge.services.log_download import LogServer, first_log_id
+from gcs_bridge.services.metadata import ComponentMetadata
+from gcs_bridge.signing import LinkPolicy
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +48,34 @@ NO_FLIGHTS = Path("/nonexistent-flight-root")  # FTP then serves only the metada
 UNKNOWN_LOG_REPORT_S = 1.0  # at most one "no such log" STATUSTEXT per link per this
 
 
+class ServiceLink(Protocol):
+    """The link a service answers on, as the services need it (`gcs_bridge.link.Link` is one).
+
+    A service never sends from the receive thread: it posts a list of messages, or a function
+    that the link's send thread calls with the link (there `bulk` and `emit` may be used).
+    """
+
+    index: int
+    core: BridgeCore
+    identity: Identity
+    policy: LinkPolicy
+    signed_in: bool
+    text_ids: status.StatusTextIds
+    bulk: BulkSender
+
+    def post(self, item: list[Msg] | Callable[[ServiceLink], None]) -> bool: ...
+
+    def notify(self, severity: int, text: str) -> None: ...
+
+    def peer_alive(self, src: tuple[int, int]) -> bool: ...
+
+    def emit(self, msgs: list[Msg]) -> None: ...
+
+
 class LinkServices:
     """Per-link LOG_* service (and the other file-like services, see the module docstring)."""
 
-    def __init__(self, link: Link, flight_root: Path | None,
+    def __init__(self, link: ServiceLink, flight_root: Path | None,
                  current_flight: Callable[[], Path | None],
                  metadata: ComponentMetadata) -> None:
         self.link = link
@@ -81,7 +106,7 @@ class LinkServices:
         requester = (msg.get_srcSystem(), msg.get_srcComponent())
         ftp = self.ftp
 
-        def start(link: Link) -> None:
+        def start(link: ServiceLink) -> None:
             link.bulk.queue(FTP_CHANNEL, _ftp_messages(ftp.handle(payload, may_write=may_write),
                                                        requester),
                             lambda: link.peer_alive(requester))
@@ -152,7 +177,7 @@ class LinkServices:
             return
         logs = self.logs
 
-        def erase(link: Link) -> None:
+        def erase(link: ServiceLink) -> None:
             link.bulk.cancel(LOG_CHANNEL)
             try:
                 erased, text = logs.erase()

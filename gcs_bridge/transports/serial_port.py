@@ -9,8 +9,7 @@ import time
 import serial
 
 from companion.core.serialport import OPEN_ERRORS, open_serial_port
-from gcs_bridge.endpoints import Endpoint
-from gcs_bridge.transport import (
+from gcs_bridge.transports.base import (
     RECONNECT_MAX_S,
     RECONNECT_MIN_S,
     SERIAL_WRITE_TIMEOUT_S,
@@ -18,6 +17,7 @@ from gcs_bridge.transport import (
     Transport,
     quiet_close,
 )
+from gcs_bridge.transports.endpoints import Endpoint
 
 log = logging.getLogger(__name__)
 

@@ -11,7 +11,7 @@ Sockets and ports that die are not closed by the receiving thread while the send
 still hold them (the descriptor could be reused by the next `open` anywhere in the process):
 they are shut down, and closed later by the sender or at `close`.
 
-One module per kind (`transport_udp`, `transport_tcp`, `transport_serial`), imported lazily.
+One module per kind (`udp`, `tcp`, `serial_port` in this package), imported lazily.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Any
 
-from gcs_bridge.endpoints import Endpoint
+from gcs_bridge.transports.endpoints import Endpoint
 
 log = logging.getLogger(__name__)
 
@@ -186,12 +186,12 @@ class SocketTransport(Transport):
 
 #: endpoint kind -> (module, class), imported on first use
 TRANSPORTS: dict[str, tuple[str, str]] = {
-    "udpin": ("gcs_bridge.transport_udp", "UdpTransport"),
-    "udpout": ("gcs_bridge.transport_udp", "UdpTransport"),
-    "udpbcast": ("gcs_bridge.transport_udp", "UdpTransport"),
-    "tcpin": ("gcs_bridge.transport_tcp", "TcpServerTransport"),
-    "tcp": ("gcs_bridge.transport_tcp", "TcpClientTransport"),
-    "serial": ("gcs_bridge.transport_serial", "SerialTransport"),
+    "udpin": ("gcs_bridge.transports.udp", "UdpTransport"),
+    "udpout": ("gcs_bridge.transports.udp", "UdpTransport"),
+    "udpbcast": ("gcs_bridge.transports.udp", "UdpTransport"),
+    "tcpin": ("gcs_bridge.transports.tcp", "TcpServerTransport"),
+    "tcp": ("gcs_bridge.transports.tcp", "TcpClientTransport"),
+    "serial": ("gcs_bridge.transports.serial_port", "SerialTransport"),
 }
 
 

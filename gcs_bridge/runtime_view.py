@@ -1,0 +1,69 @@
+"""The runtime as every part of the bridge sees it: context, manager, vehicle ids, time, threads.
+
+`BridgeCore` is read by the receive and send threads of every link; it holds no per-link
+state and nothing in it changes after construction except through the runtime's own
+thread-safe objects (parameter registry, slots, manager). The thread ids name the runtime's
+data sources whose status the bridge reports.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from companion.watchdog import RuntimeContext, ThreadManager
+from gcs_bridge.dialect import COMPONENT_ID, clamp_int
+
+#: Thread ids of the runtime's data sources (the legacy protocol's contract).
+THREAD_IMU, THREAD_GPS, THREAD_SERVO, THREAD_ESTIMATOR, THREAD_CONTROL = 1, 2, 3, 4, 5
+
+
+@dataclass
+class BridgeCore:
+    ctx: RuntimeContext
+    manager: ThreadManager
+    compid: int = COMPONENT_ID
+    boot_real_ns: int = 0
+    boot_mono_ns: int = 0
+    _cpu: tuple[float, float] = field(default=(0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        self.boot_real_ns = self.ctx.clock.realtime_ns()
+        self.boot_mono_ns = self.ctx.clock.monotonic_ns()
+        self._cpu = (time.process_time(), time.monotonic())
+
+    @property
+    def sysid(self) -> int:
+        return int(self.ctx.vehicle_id)
+
+    def now_real_ns(self) -> int:
+        return self.ctx.clock.realtime_ns()
+
+    def time_boot_ms(self, real_ns: int | None = None) -> int:
+        """Milliseconds since the bridge started (MAVLink's "boot"), wrapped to uint32."""
+        t = self.now_real_ns() if real_ns is None else real_ns
+        return max(0, (t - self.boot_real_ns) // 1_000_000) & 0xFFFFFFFF
+
+    def time_usec(self, real_ns: int | None = None) -> int:
+        """Unix time in microseconds (MAVLink accepts epoch time in time_usec fields)."""
+        t = self.now_real_ns() if real_ns is None else real_ns
+        return max(0, t // 1000)
+
+    def thread_message_ms(self, thread_id: int) -> int | None:
+        """The message period of a runtime thread, None when the thread does not exist."""
+        t = self.manager.find(thread_id)
+        if t is None:
+            return None
+        try:
+            return int(t.message_ms)
+        except Exception:  # a thread whose parameters are not declared yet
+            return None
+
+    def cpu_load_permille(self) -> int:
+        """Process CPU use since the last call, in tenths of a percent of one core."""
+        cpu, wall = time.process_time(), time.monotonic()
+        cpu0, wall0 = self._cpu
+        self._cpu = (cpu, wall)
+        if wall - wall0 <= 0:
+            return 0
+        return clamp_int(1000.0 * (cpu - cpu0) / (wall - wall0), 0, 1000, 0)
