@@ -1,9 +1,9 @@
-"""The runtime as every part of the bridge sees it: context, manager, vehicle ids, time, threads.
+"""The runtime as every part of the bridge sees it: context, manager, vehicle ids, time.
 
 `BridgeCore` is read by the receive and send threads of every link; it holds no per-link
 state and nothing in it changes after construction except through the runtime's own
-thread-safe objects (parameter registry, slots, manager). The thread ids name the runtime's
-data sources whose status the bridge reports.
+thread-safe objects (parameter registry, slots, manager). What each thread stands for comes
+from its row (`Task.publishes`), not from ids kept here.
 """
 
 from __future__ import annotations
@@ -13,9 +13,6 @@ from dataclasses import dataclass, field
 
 from companion.watchdog import RuntimeContext, ThreadManager
 from gcs_bridge.dialect import COMPONENT_ID, clamp_int
-
-#: Thread ids of the runtime's data sources (the legacy protocol's contract).
-THREAD_IMU, THREAD_GPS, THREAD_SERVO, THREAD_ESTIMATOR, THREAD_CONTROL = 1, 2, 3, 4, 5
 
 
 @dataclass

@@ -15,11 +15,6 @@ from companion.watchdog import ThreadStatus
 from gcs_bridge.dialect import UINT16_MAX, Identity, ProtocolVersionMessage, clamp_int, mavlink
 from gcs_bridge.dialect import Message as Msg
 from gcs_bridge.runtime_view import (
-    THREAD_CONTROL,
-    THREAD_ESTIMATOR,
-    THREAD_GPS,
-    THREAD_IMU,
-    THREAD_SERVO,
     BridgeCore,
 )
 from gcs_bridge.telemetry import battery_percent
@@ -33,15 +28,23 @@ _PX4_STABILIZED = 7 << 16
 _APM_PLANE_MANUAL = 0
 _APM_PLANE_STABILIZE = 2
 
-# thread id -> MAV_SYS_STATUS_SENSOR bits it stands for
+# a slot a thread publishes (its row's `publishes`) -> the MAV_SYS_STATUS_SENSOR bits it stands
+# for: a thread is known by what it produces, so this module keeps no list of thread ids
 _SENSOR_BITS = {
-    THREAD_IMU: mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
-    THREAD_GPS: mavlink.MAV_SYS_STATUS_SENSOR_GPS,
-    THREAD_SERVO: mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS,
-    THREAD_ESTIMATOR: mavlink.MAV_SYS_STATUS_AHRS,
-    THREAD_CONTROL: mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+    "imu": mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
+    "gps": mavlink.MAV_SYS_STATUS_SENSOR_GPS,
+    "servo": mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS,
+    "estimator": mavlink.MAV_SYS_STATUS_AHRS,
+    "control": mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
     | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL,
 }
+
+
+def _bits_of(publishes: tuple[str, ...]) -> int:
+    bits = 0
+    for slot in publishes:
+        bits |= _SENSOR_BITS.get(slot, 0)
+    return bits
 
 
 @dataclass
@@ -120,9 +123,12 @@ def sensor_bits(core: BridgeCore) -> tuple[int, int, int]:
     """(present, enabled, healthy) MAV_SYS_STATUS_SENSOR bitmaps from the threads."""
     present = enabled = healthy = 0
     state = core.ctx.state
-    for st in core.manager.thread_status():
-        bits = _SENSOR_BITS.get(st.thread_id)
-        if bits is None:
+    servo_thread = False
+    for thread, st in zip(core.manager.threads, core.manager.thread_status(), strict=True):
+        publishes = thread.task.publishes
+        servo_thread = servo_thread or "servo" in publishes
+        bits = _bits_of(publishes)
+        if not bits:
             continue
         present |= bits
         if st.enabled:
@@ -130,24 +136,24 @@ def sensor_bits(core: BridgeCore) -> tuple[int, int, int]:
         if not thread_healthy(st):
             continue
         ok = bits
-        if st.thread_id == THREAD_IMU:
+        if "imu" in publishes:
             imu = state.imu.read()
             if imu is not None:
                 if not imu.gyro_ok:
                     ok &= ~mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
                 if not imu.accel_ok:
                     ok &= ~mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-        elif st.thread_id == THREAD_SERVO:
+        if "servo" in publishes:
             servo = state.servo.read()
             if servo is not None and servo.failsafe:
                 ok &= ~mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
-        elif st.thread_id == THREAD_ESTIMATOR:
+        if "estimator" in publishes:
             est = state.estimator.read()
             if est is None or not est.aligned or est.faults:
-                ok = 0
+                ok &= ~mavlink.MAV_SYS_STATUS_AHRS
         healthy |= ok
     servo = state.servo.read()
-    if core.manager.find(THREAD_SERVO) is not None:
+    if servo_thread:
         batt = mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
         present |= batt
         enabled |= batt

@@ -191,7 +191,10 @@ def test_heartbeat_identity_and_boot_state() -> None:
 
 
 def test_sensor_bits_follow_the_threads() -> None:
-    core = make_core(Idle("imu", thread_id=1), Idle("gps", thread_id=2), Idle("servo", thread_id=3))
+    # a thread stands for what its row publishes, whatever its id
+    core = make_core(Idle("imu", thread_id=1, publishes=("imu",)),
+                     Idle("gps", thread_id=12, publishes=("gps",)),
+                     Idle("servo", thread_id=3, publishes=("servo",)), Idle("other", thread_id=4))
     core.ctx.params.set("GPS_ENABLE", 0)
     present, enabled, healthy = status.sensor_bits(core)
     gps = mavlink.MAV_SYS_STATUS_SENSOR_GPS
@@ -202,7 +205,7 @@ def test_sensor_bits_follow_the_threads() -> None:
     # GEOFENCE health bit as a breach and says so on connecting)
     assert healthy == mavlink.MAV_SYS_STATUS_GEOFENCE
     assert not present & mavlink.MAV_SYS_STATUS_GEOFENCE
-    assert not present & mavlink.MAV_SYS_STATUS_AHRS
+    assert not present & mavlink.MAV_SYS_STATUS_AHRS  # id 4 publishes no estimate
 
 
 def test_thread_status_names_fit_ten_characters() -> None:
