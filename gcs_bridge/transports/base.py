@@ -17,7 +17,6 @@ One module per kind (`udp`, `tcp`, `serial_port` in this package), imported lazi
 from __future__ import annotations
 
 import abc
-import importlib
 import logging
 import select
 import socket
@@ -26,6 +25,7 @@ from collections.abc import Hashable
 from dataclasses import dataclass
 from typing import Any
 
+from companion.core.lazy import load
 from gcs_bridge.transports.endpoints import Endpoint
 
 log = logging.getLogger(__name__)
@@ -201,6 +201,6 @@ def make_transport(endpoint: Endpoint) -> Transport:
         module_name, class_name = TRANSPORTS[endpoint.kind]
     except KeyError:
         raise TransportError(f"{endpoint.url}: no transport for kind {endpoint.kind!r}") from None
-    cls = getattr(importlib.import_module(module_name), class_name)
+    cls = load(f"{module_name}:{class_name}")
     transport: Transport = cls(endpoint)
     return transport
