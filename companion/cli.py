@@ -19,7 +19,7 @@ from companion.cli_common import add_runtime_arguments, config_from_args, print_
 from companion.core.config import ConfigError
 from companion.core.lazy import load
 from companion.liveview import live_view_bridges
-from companion.vehicle import VEHICLE, load_vehicle_config
+from companion.vehicle import VEHICLE, apply_device_ports, load_vehicle_config
 
 log = logging.getLogger("companion")
 
@@ -111,10 +111,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from companion.watchdog.manager import EXIT_ESCALATED
 
     cfg = config_from_args(args)
-    for row in VEHICLE.devices():
-        port = getattr(args, f"device_{row.name}", None)
-        if port:
-            cfg.devices[row.name].port = port
+    apply_device_ports(cfg, {row.name: getattr(args, f"device_{row.name}", None)
+                             for row in VEHICLE.devices()})
     while True:
         rt = Runtime(cfg, RuntimeOptions(extra_bridges=live_view_bridges(cfg)))
         for issue in rt.param_issues:

@@ -36,8 +36,8 @@ from companion.core.config import Config, ConfigError, DeviceConfig, load_config
 from companion.watchdog.task import RestartType, Task
 from companion.watchdog.thread import ManagedThread
 
-__all__ = ["VEHICLE", "Row", "VehicleTable", "device_settings", "fill_device_defaults",
-           "load_vehicle_config"]
+__all__ = ["VEHICLE", "Row", "VehicleTable", "apply_device_ports", "device_settings",
+           "fill_device_defaults", "load_vehicle_config"]
 
 
 @dataclass(frozen=True)
@@ -158,6 +158,25 @@ def device_settings(cfg: Config, name: str, table: VehicleTable | None = None) -
     return cfg.devices[name]
 
 
+def apply_device_ports(cfg: Config, ports: Mapping[str, str | None],
+                       table: VehicleTable | None = None) -> None:
+    """``companion run --<device> PORT``: each device given a port is switched on with it; a
+    device whose slots another given device fills (the thesis IMU, GPS and servo board when
+    ``--autopilot URL`` is given) is switched off unless its own port was given too, so an
+    aircraft with a flight controller does not also look for the thesis's serial devices."""
+    table = table or VEHICLE
+    given = {name: port for name, port in ports.items() if port}
+    fills: set[str] = set()
+    for name, port in given.items():
+        settings = device_settings(cfg, name, table)
+        settings.port = port
+        settings.enabled = True
+        fills |= set(table[name].task.publishes)
+    for row in table.devices():
+        if row.name not in given and fills & set(row.task.publishes):
+            device_settings(cfg, row.name, table).enabled = False
+
+
 def _device(port: str) -> DeviceConfig:
     return DeviceConfig(port=port, baud=115200, enabled=True)
 
@@ -190,9 +209,18 @@ VEHICLE = VehicleTable((
              restart=RestartType.TRANSIENT, escalate=True,
              implementation="companion.control:ControlThread", publishes=("control",)),
         "the control law, one step per estimate", switch="control"),
+    # Beside a flight controller: a MAVLink link (serial TELEM cable, TCP or UDP) that fills the
+    # same slots as the thesis devices. Off until a URL is given (--autopilot URL).
+    Row(Task("autopilot", thread_id=6, paced_by="the autopilot's messages", budget_ms=5.0,
+             watchdog_ms=2000, message_ms=1000, param_prefix="AP",
+             restart=RestartType.TRANSIENT,
+             implementation="gcs_bridge.autopilot.link:AutopilotLink",
+             publishes=("imu", "imu_slow", "gps", "servo", "autopilot", "truth")),
+        "MAVLink link to a flight controller (ArduPilot, PX4): its IMU, GPS, RC, outputs and "
+        "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False)),
 ))
-"""The thesis aircraft: IMU, GPS and servo board on serial ports, the estimator, the control
-law."""
+"""The thesis aircraft (IMU, GPS and servo board on serial ports, the estimator, the control
+law) and, switched on by a URL, the link to a flight controller beside which it flies."""
 
 
 def example_devices_toml(table: VehicleTable | Mapping[str, DeviceConfig] = VEHICLE) -> str:

@@ -166,7 +166,19 @@ class VehicleState:
     named: dict[str, WaitableSlot[Any]] = field(default_factory=dict, repr=False)
     """Slots of kinds of data the fields above do not have (a plug-in source's airspeed, a
     barometer), by name: see `slot`."""
+    queues: dict[str, MessageQueue[Any]] = field(default_factory=dict, repr=False)
+    """Named queues between a source and the bridges (an autopilot's frames to route, and the
+    frames to send it): see `queue`."""
     _named_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def queue(self, name: str, capacity: int = 4096) -> MessageQueue[Any]:
+        """The bounded queue `name` (created on first use, the oldest item dropped when full):
+        how a bridge and a source hand each other items without knowing each other."""
+        with self._named_lock:
+            q = self.queues.get(name)
+            if q is None:
+                q = self.queues[name] = MessageQueue(capacity, drop_oldest=True)
+            return q
 
     def slot(self, name: str) -> WaitableSlot[Any]:
         """The slot `name`: a field above when there is one (``imu``, ``gps``...), else a named

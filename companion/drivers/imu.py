@@ -15,6 +15,17 @@ FMT_SLOW = 2
 FMT_RAW = 3
 
 
+def define_sample_logs(tlog: Any) -> None:
+    """The formats of ``imu.bin``'s samples, whoever produces them (this driver, or an
+    autopilot link whose IMU takes the slot): the report and the converters read one layout."""
+    tlog.define(FMT_FAST, "%hhu,%hhu,%.6f,%.6f,%.6f,%.5f,%.5f,%.5f",
+                ["counter", "status", "p_rad_s", "q_rad_s", "r_rad_s",
+                 "ax_m_s2", "ay_m_s2", "az_m_s2"])
+    tlog.define(FMT_SLOW, "%.7f,%.7f,%.7f,%.6f,%.6f,%.6f,%.2f,%hu",
+                ["p_rad_s", "q_rad_s", "r_rad_s", "ax_m_s2", "ay_m_s2", "az_m_s2",
+                 "temperature_c", "bit_word"])
+
+
 class ImuDriver(SerialDevice):
     """Decodes the IMU's frames; a fast frame is a sample (a cycle), a slow block is not."""
 
@@ -29,12 +40,7 @@ class ImuDriver(SerialDevice):
         sends copies, not samples. Each would be a second sample at the same instant."""
 
     def define_logs(self, tlog: Any) -> None:
-        tlog.define(FMT_FAST, "%hhu,%hhu,%.6f,%.6f,%.6f,%.5f,%.5f,%.5f",
-                    ["counter", "status", "p_rad_s", "q_rad_s", "r_rad_s",
-                     "ax_m_s2", "ay_m_s2", "az_m_s2"])
-        tlog.define(FMT_SLOW, "%.7f,%.7f,%.7f,%.6f,%.6f,%.6f,%.2f,%hu",
-                    ["p_rad_s", "q_rad_s", "r_rad_s", "ax_m_s2", "ay_m_s2", "az_m_s2",
-                     "temperature_c", "bit_word"])
+        define_sample_logs(tlog)
         super().define_logs(tlog)
 
     def on_port_opened(self) -> None:

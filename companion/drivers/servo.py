@@ -37,6 +37,15 @@ def surfaces_to_us(out: ControlOutput) -> tuple[int, ...]:
             0, 0, 0, 0)
 
 
+def define_exchange_log(tlog: Any) -> None:
+    """The format of ``servo.bin``'s exchanges, whoever produces them (this driver, or an
+    autopilot link whose RC input and outputs take the slot)."""
+    cols = ([f"pilot{i}_us" for i in range(1, 9)] + [f"cmd{i}_us" for i in range(1, 9)]
+            + ["seq", "auto_requested", "auto_engaged", "failsafe", "avionics_batt",
+               "servo_batt"])
+    tlog.define(FMT_EXCHANGE, ",".join(["%hu"] * 16) + ",%hhu,%hhu,%hhu,%hhu,%hhu,%hhu", cols)
+
+
 class ServoDriver(SerialDevice):
     """Writes the command, then reads the pilot's answer: a timer thread, not a paced reader,
     so it overrides `step` and publishes each answer through `publish`."""
@@ -56,10 +65,7 @@ class ServoDriver(SerialDevice):
                           "How long to wait for the board's pilot frame after each command.")]
 
     def define_logs(self, tlog: Any) -> None:
-        cols = ([f"pilot{i}_us" for i in range(1, 9)] + [f"cmd{i}_us" for i in range(1, 9)]
-                + ["seq", "auto_requested", "auto_engaged", "failsafe", "avionics_batt",
-                   "servo_batt"])
-        tlog.define(FMT_EXCHANGE, ",".join(["%hu"] * 16) + ",%hhu,%hhu,%hhu,%hhu,%hhu,%hhu", cols)
+        define_exchange_log(tlog)
         super().define_logs(tlog)
 
     def configure(self) -> None:
