@@ -51,7 +51,8 @@ from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
 from companion.estimation.attitude import estimate_attitude
 from companion.estimation.calibration import GyroCalibration, calibration_from_row
-from companion.estimation.fusion import EstimatorCore, board_to_body
+from companion.estimation.fusion import EstimatorCore, HeadingFix, board_to_body
+from companion.estimation.params import estimator_param_defaults
 from companion.estimation.quat import (
     FloatArray,
     heading_error_rad,
@@ -62,7 +63,6 @@ from companion.estimation.quat import (
     quat_to_rotmat,
     quat_to_rotvec,
 )
-from companion.estimation.thread import estimator_param_defaults
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
 from companion.sim.profiles import (
@@ -73,10 +73,12 @@ from companion.sim.profiles import (
     resolve_sensors,
 )
 from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
+from companion.tasks import VEHICLE_TASKS
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "ESTIMATOR_PARAM_PREFIX",
     "EskfAsThread",
     "EskfOptions",
     "EskfRun",
@@ -86,7 +88,6 @@ __all__ = [
     "RunResult",
     "SitlEvalError",
     "SitlRecording",
-    "estimator_param_defaults",
     "evaluate",
     "filter_errors",
     "outage_growth",
@@ -98,6 +99,8 @@ __all__ = [
     "steady_turn_mask",
 ]
 
+ESTIMATOR_PARAM_PREFIX = VEHICLE_TASKS["estimator"].param_prefix
+"""The vehicle's estimator parameters' prefix (``EST``)."""
 IMU_RATE_HZ = 100
 IMU_ONLY_FILTERS = ("attitude", "vqf", "madgwick")
 """IMU-only references: the project's `estimate_attitude`, VQF 6-D and Madgwick, all defaults."""
@@ -485,7 +488,7 @@ class EskfAsThread(EstimatorCore):
         params: Mapping[str, float] | None = None,
         eskf_kwargs: Mapping[str, float] | None = None,
     ) -> None:
-        defaults = estimator_param_defaults()
+        defaults = estimator_param_defaults(ESTIMATOR_PARAM_PREFIX)
         given = dict(params or {})
         unknown = sorted(set(given) - set(defaults))
         if unknown:
@@ -630,15 +633,17 @@ def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
         c0 = cpu()
         t0 = perf()
         try:
+            temperature_c = None
             if k % TEMPERATURE_EVERY == 0 and len(rec.imu_temperature_c) > k:
                 # the slow block's temperature, once a second at its 0.01 C resolution
-                est.set_temperature(round(float(rec.imu_temperature_c[k]), 2))
-            running = est.cycle(samples, fix, hzn)
+                temperature_c = round(float(rec.imu_temperature_c[k]), 2)
+            heading = None
             if opts.heading_std_rad > 0.0 and fix is not None and est.filter is not None:
-                est.filter.update_heading(
+                heading = HeadingFix(
                     float(rec.euler_true_rad[k, 2]) + opts.heading_bias_rad
                     + opts.heading_std_rad * float(heading_rng.standard_normal()),
                     opts.heading_std_rad)
+            running = est.cycle(samples, fix, hzn, temperature_c=temperature_c, heading=heading)
             t1 = perf()
             f = est.filter
             st = f.state() if f is not None and running else None
