@@ -17,7 +17,8 @@ import math
 import numpy as np
 import pytest
 
-from companion.estimation.eskf import IDX_GYRO_MATRIX, N_STATES, Eskf
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import IDX_GYRO_MATRIX, N_STATES
 from companion.estimation.fusion import EstimatorCore
 from companion.estimation.params import estimator_param_defaults
 from companion.evaluation.sitl import (

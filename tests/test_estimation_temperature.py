@@ -19,14 +19,14 @@ import math
 import numpy as np
 import pytest
 
-from companion.estimation.eskf import (
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import (
     GYRO_TEMP_RESIDUAL,
     IDX_ACCEL_BIAS,
     IDX_GYRO_BIAS,
     IDX_GYRO_TEMP,
     TEMP_SPAN_C,
     TEMP_STEP_C,
-    Eskf,
 )
 from companion.evaluation.sitl import (
     EskfOptions,

@@ -22,7 +22,8 @@ import numpy as np
 from companion.core.geo import NedFrame
 from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.estimation.calibration import GYRO_MATRIX_PARAMS, GYRO_TEMP_PARAMS
-from companion.estimation.eskf import Eskf, UpdateResult
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import UpdateResult
 from companion.estimation.quat import quat_from_euler, quat_multiply_f
 
 log = logging.getLogger(__name__)

@@ -43,7 +43,8 @@ from companion.watchdog.thread import ManagedThread, Task
 if TYPE_CHECKING:
     # the filter loads when the thread starts, not when its
     # parameters are listed (`companion params`, the docs)
-    from companion.estimation.eskf import Eskf, UpdateResult
+    from companion.estimation.eskf import Eskf
+    from companion.estimation.eskf_state import UpdateResult
     from companion.estimation.fusion import EstimatorCore
 
 log = logging.getLogger(__name__)
@@ -169,7 +170,7 @@ class EstimatorThread(ManagedThread):
     def prologue(self) -> bool:
         state = self.ctx.state
         clock = self.ctx.clock
-        from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL
+        from companion.estimation.eskf_state import IDX_ATT, IDX_POS, IDX_VEL
         from companion.estimation.fusion import EstimatorCore
 
         # the logged standard deviations
