@@ -59,15 +59,11 @@ from scipy.stats import chi2
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from companion.estimation.params import estimator_param_defaults  # noqa: E402
-from companion.evaluation.sitl import (  # noqa: E402
+from companion.evaluation.sitl import FlightSpec, SitlEvalError, record_flight  # noqa: E402
+from companion.evaluation.sitl_benchmark import IMU_ONLY_FILTERS, RunResult, evaluate  # noqa: E402
+from companion.evaluation.sitl_estimator import (  # noqa: E402
     ESTIMATOR_PARAM_PREFIX,
-    IMU_ONLY_FILTERS,
     EskfOptions,
-    FlightSpec,
-    RunResult,
-    SitlEvalError,
-    evaluate,
-    record_flight,
     run_eskf,
 )
 

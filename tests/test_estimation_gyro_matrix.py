@@ -21,14 +21,9 @@ from companion.estimation.eskf import Eskf
 from companion.estimation.eskf_state import IDX_GYRO_MATRIX, N_STATES
 from companion.estimation.fusion import EstimatorCore
 from companion.estimation.params import estimator_param_defaults
-from companion.evaluation.sitl import (
-    ESTIMATOR_PARAM_PREFIX,
-    EskfOptions,
-    FlightSpec,
-    filter_errors,
-    record_flight,
-    run_eskf,
-)
+from companion.evaluation.sitl import FlightSpec, record_flight
+from companion.evaluation.sitl_estimator import ESTIMATOR_PARAM_PREFIX, EskfOptions, run_eskf
+from companion.evaluation.sitl_scoring import filter_errors
 
 G = 9.80665
 

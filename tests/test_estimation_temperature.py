@@ -28,13 +28,9 @@ from companion.estimation.eskf_state import (
     TEMP_SPAN_C,
     TEMP_STEP_C,
 )
-from companion.evaluation.sitl import (
-    EskfOptions,
-    FlightSpec,
-    filter_errors,
-    record_flight,
-    run_eskf,
-)
+from companion.evaluation.sitl import FlightSpec, record_flight
+from companion.evaluation.sitl_estimator import EskfOptions, run_eskf
+from companion.evaluation.sitl_scoring import filter_errors
 
 GYRO_TC = 5e-4  # rad/s/C
 ACCEL_TC = 1.5e-3  # m/s^2/C
