@@ -5,8 +5,10 @@
 uncertainty when the aircraft is evidently not still), the IMU period from the frame counters,
 the GPS measurement model (position in the shared NED frame, standard deviations from HDOP, GST
 and the parameters, an unmeasured vertical velocity left unconstrained) and its latency, and the
-horizon weighting. The estimator thread wraps it with queues, slots and logs; the SITL
-evaluation (`companion.evaluation.sitl`) drives it directly, so what is benchmarked is what flies.
+horizon weighting, and the one estimator cycle (`EstimatorCore.cycle`). The estimator thread
+wraps it with queues, slots and logs; the replay (`companion.estimation.replay`) and the SITL
+evaluation (`companion.evaluation.sitl_estimator`) drive the same cycle, so what is replayed
+and benchmarked is what flies.
 """
 
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 Initial phase (the aperiodic prologue, as in the thesis): average the IMU for EST_INIT_S to
 level the attitude and take the gyro bias, and wait for a GPS fix. Periodic section, paced by
-the IMU: every sample is integrated (all of them, from the IMU stream queue, not only the newest),
-then the newest GPS fix and horizon attitude, if any, are fused with their latencies. The result
-goes to the estimator slot (control reads it), the log and the bridges.
+the IMU: one `EstimatorCore.cycle` integrates every sample (all of them, from the IMU stream
+queue, not only the newest), then fuses the newest GPS fix, IMU temperature and horizon
+attitude, if any, with their latencies. The result goes to the estimator slot (control reads
+it), the log (companion.estimation.logformats) and the bridges.
 
 A filter divergence is repaired inside the filter and counted as an estimator fault
 (`faults`); it never raises, so it never costs a thread restart.

@@ -3,7 +3,8 @@
 The estimator is the flight's: `EstimatorCore` (GPS/INS ESKF, the estimator thread's parameter
 defaults, sample periods from the samples' time stamps) when the log has usable GPS fixes, else
 the IMU-only `AttitudeFilter`. Samples are handed over in cycles of `output_period_s`, as the
-thread drains its IMU queue, with the newest GPS fix of the cycle.
+thread drains its IMU queue, with the newest GPS fix of the cycle and the IMU temperature at
+most once a second, through the thread's own `EstimatorCore.cycle`.
 
 Logs are not clean, so every timeline is cleaned first and what was done is reported, never
 raised: repeated time stamps (duplicated samples) and small steps back (out of order) are
