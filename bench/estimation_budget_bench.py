@@ -128,7 +128,9 @@ WARMUP_S = 30.0
 
 def fly(job: tuple[str, int, float]) -> tuple[str, int, dict[str, float]]:
     world, seed, duration_s = job
-    from companion.evaluation.sitl import EskfOptions, FlightSpec, evaluate
+    from companion.evaluation.sitl import FlightSpec
+    from companion.evaluation.sitl_benchmark import evaluate
+    from companion.evaluation.sitl_estimator import EskfOptions
 
     aided: dict[str, float] = {}
     if world in AIDED:

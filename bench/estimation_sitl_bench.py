@@ -58,15 +58,12 @@ from scipy.stats import chi2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from companion.evaluation.sitl import (  # noqa: E402
-    IMU_ONLY_FILTERS,
+from companion.estimation.params import estimator_param_defaults  # noqa: E402
+from companion.evaluation.sitl import FlightSpec, SitlEvalError, record_flight  # noqa: E402
+from companion.evaluation.sitl_benchmark import IMU_ONLY_FILTERS, RunResult, evaluate  # noqa: E402
+from companion.evaluation.sitl_estimator import (  # noqa: E402
+    ESTIMATOR_PARAM_PREFIX,
     EskfOptions,
-    FlightSpec,
-    RunResult,
-    SitlEvalError,
-    estimator_param_defaults,
-    evaluate,
-    record_flight,
     run_eskf,
 )
 
@@ -171,7 +168,7 @@ def second_flight_jobs(args: argparse.Namespace, accuracy: Sequence[Outcome]) ->
     """Each accuracy flight's part again, from the defaults and from what it learnt."""
     from companion.estimation.calibration import next_flight_params
 
-    defaults = {**estimator_param_defaults(), **args.params}
+    defaults = {**estimator_param_defaults(ESTIMATOR_PARAM_PREFIX), **args.params}
     jobs: list[Job] = []
     for out in accuracy:
         run = out.result.eskf.get("eskf") if out.result is not None else None
@@ -473,7 +470,7 @@ FILTER_LABELS = {
 
 def print_knowledge(args: argparse.Namespace) -> None:
     """What each filter was told, and which of it a real flight would not tell it."""
-    est = {**estimator_param_defaults(), **args.params}
+    est = {**estimator_param_defaults(ESTIMATOR_PARAM_PREFIX), **args.params}
     sensors = FlightSpec(aircraft=args.aircraft[0], **_sensors(args)).sensors()
     imu, gps = sensors.imu, sensors.gps
     print("\n### What each filter knows\n")
@@ -723,7 +720,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.long_s = args.long_s if args.long_s is not None else (300.0 if args.quick else 3600.0)
     args.params = _kv(args.param, "--param")
     args.eskf_kwargs = _kv(args.eskf, "--eskf")
-    known = estimator_param_defaults()
+    known = estimator_param_defaults(ESTIMATOR_PARAM_PREFIX)
     unknown = sorted(set(args.params) - set(known))
     if unknown:
         p.error(f"--param: unknown estimator parameter(s) {unknown}; known: {sorted(known)}")
@@ -772,7 +769,7 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.monotonic() - t0
     cpu_s = sum(o.cpu_s for o in outcomes)
 
-    defaults = estimator_param_defaults()
+    defaults = estimator_param_defaults(ESTIMATOR_PARAM_PREFIX)
     print(f"\n## Estimation accuracy in SITL ({args.scenario} scenario, {args.duration_s:.0f} s "
           f"flights, first {args.warmup_s:.0f} s not scored)\n")
     print(f"{len(outcomes)} flights in {elapsed / 60:.1f} min on {args.workers} worker(s), "

@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from companion.estimation.quat import quat_from_rotvec, quat_to_rotmat  # noqa: E402
 from companion.evaluation import realdata as rd  # noqa: E402
+from companion.evaluation import realdata_scoring as rs  # noqa: E402
 
 FILTERS = ("ours", "vqf", "madgwick")
 COLUMNS = (*FILTERS, "ours_timed")
@@ -72,7 +73,7 @@ def main(argv: list[str]) -> int:
     if args.quick:
         names = [n for n in names if n.endswith("_MPU9150") and rd.load_leiria(n).held_out]
     t0 = time.monotonic()
-    results = rd.score_leiria(names, FILTERS, with_timed=True)
+    results = rs.score_leiria(names, FILTERS, with_timed=True)
     oracle = {r.name: rest_oracle_rmse_deg(r.name) for r in results}
     print(f"## Leiria robot arm: inclination RMSE per recording, degrees ({len(results)} "
           f"recordings, {time.monotonic() - t0:.0f} s)\n")
@@ -98,9 +99,9 @@ def main(argv: list[str]) -> int:
     for split, rows in splits.items():
         if not rows:
             continue
-        vqf = rd.mean_rmse_deg(rows, "vqf")
+        vqf = rs.mean_rmse_deg(rows, "vqf")
         for c in COLUMNS:
-            mean = rd.mean_rmse_deg(rows, c)
+            mean = rs.mean_rmse_deg(rows, c)
             p95 = float(np.mean([r.scores[c].p95_deg for r in rows]))
             worst = max(r.scores[c].max_deg for r in rows)
             print(f"| {split} | {len(rows)} | {LABEL[c]} | {_fmt(mean)} | {_fmt(p95)} | "
@@ -112,12 +113,12 @@ def main(argv: list[str]) -> int:
     print("\n## XSENS MTi-30's own orientation (its mounting fitted to its own output)\n")
     print("| split | recordings | mean RMSE | mean p95 | max |")
     print("| --- | ---: | ---: | ---: | ---: |")
-    xs: dict[str, list[rd.Score]] = {"tuning": [], "held out": []}
+    xs: dict[str, list[rs.Score]] = {"tuning": [], "held out": []}
     for speed in rd.LEIRIA_SPEEDS:
         for path in (1, 2, 3, 4):
             if args.quick and speed not in rd.HELD_OUT_SPEEDS:
                 continue
-            score = rd.score_xsens(speed, path)
+            score = rs.score_xsens(speed, path)
             if score is not None:
                 xs["held out" if speed in rd.HELD_OUT_SPEEDS else "tuning"].append(score)
     for split, scores in xs.items():
@@ -128,7 +129,7 @@ def main(argv: list[str]) -> int:
                   f"{max(s.max_deg for s in scores):.1f} |")
 
     print("\n## PX4 flight log: agreement with PX4's EKF2 (a reference, not truth), degrees\n")
-    px4 = rd.score_px4(FILTERS, with_timed=True)
+    px4 = rs.score_px4(FILTERS, with_timed=True)
     print("| filter | RMSE | p95 | max | ratio to VQF |")
     print("| --- | ---: | ---: | ---: | ---: |")
     for c in COLUMNS:
@@ -137,7 +138,7 @@ def main(argv: list[str]) -> int:
               f"{s.rmse_deg / px4['vqf'].rmse_deg:.2f} |")
     held = splits["held out"]
     if held:
-        ratio = rd.mean_rmse_deg(held, "ours") / rd.mean_rmse_deg(held, "vqf")
+        ratio = rs.mean_rmse_deg(held, "ours") / rs.mean_rmse_deg(held, "vqf")
         verdict = "met" if ratio <= 0.9 else "not met"
         print(f"\nheld out: ours / VQF = {ratio:.3f} (target <= 0.9: {verdict}); "
               f"{time.monotonic() - t0:.0f} s in all")

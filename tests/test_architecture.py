@@ -22,9 +22,11 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("bridges", ("gcs_bridge", "legacy_protocol")),
     ("app", ("companion.vehicle", "companion.runtime", "companion.service", "companion.docgen",
              "companion.cli_common")),
-    # the driver replay tool and its command build drivers from the vehicle's table
+    # the replay tools and the calibration command beside the drivers and the estimator read
+    # the vehicle's table (device names, the estimator's prefix): tools, not flight code
     ("tools", ("companion.sim", "companion.evaluation", "companion.report", "companion.liveview",
-               "companion.deploy", "companion.drivers.replay", "companion.drivers.cli")),
+               "companion.deploy", "companion.drivers.replay", "companion.drivers.cli",
+               "companion.estimation.replay", "companion.estimation.calibration_cli")),
     ("cli", ("companion.cli", "companion.__main__")),
 ]
 STANDALONE = "horizon"  # a library of its own: it imports nothing of the other packages

@@ -22,13 +22,9 @@ from companion.estimation.calibration import (
     next_flight_params,
 )
 from companion.estimation.eskf import Eskf
-from companion.evaluation.sitl import (
-    EskfOptions,
-    FlightSpec,
-    filter_errors,
-    record_flight,
-    run_eskf,
-)
+from companion.evaluation.sitl import FlightSpec, record_flight
+from companion.evaluation.sitl_estimator import EskfOptions, run_eskf
+from companion.evaluation.sitl_scoring import filter_errors
 from companion.logs import read_log
 from companion.sim.lockstep import run_lockstep
 from companion.sim.runner import SimOptions

@@ -12,7 +12,8 @@ import pytest
 from filterpy.stats import NEES
 from scipy.stats import chi2
 
-from companion.estimation.eskf import IDX_ATT, Eskf, EskfState, UpdateResult
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import IDX_ATT, EskfState, UpdateResult
 from companion.estimation.quat import (
     heading_error_rad,
     quat_conjugate,
@@ -468,7 +469,7 @@ def test_imu_rate_does_not_matter(rate_hz: float) -> None:
     (np.float64(1.0), 2.0, 3.0), (1.0, math.nan, 3.0), (1.0, 2.0), np.zeros(4), "abc",
 ])
 def test_measurement_vectors_are_read_and_refused_as_before(value: object) -> None:
-    from companion.estimation import eskf
+    from companion.estimation import eskf_state
 
     def general(v: object) -> np.ndarray | str:
         try:
@@ -481,7 +482,7 @@ def test_measurement_vectors_are_read_and_refused_as_before(value: object) -> No
 
     def fast(v: object) -> np.ndarray | str:
         try:
-            return eskf._vec3(v)  # type: ignore[arg-type]
+            return eskf_state.vec3(v)  # type: ignore[arg-type]
         except (TypeError, ValueError):
             return "refused"
 
@@ -496,16 +497,16 @@ def test_measurement_vectors_are_read_and_refused_as_before(value: object) -> No
 @pytest.mark.parametrize("value", [0.5, (0.5, 0.5, 2.0), (1e-6, 1.0, 1.0), (0.0, 1.0, 1.0),
                                    (-1.0, 1.0, 1.0), np.array([0.3, 0.3, 0.9]), (math.inf, 1, 1)])
 def test_standard_deviations_are_read_and_refused_as_before(value: object) -> None:
-    from companion.estimation import eskf
+    from companion.estimation import eskf_state
 
     arr = np.asarray(value, dtype=float).reshape(-1)
     if arr.shape == (1,):
         arr = np.repeat(arr, 3)
     if not (np.isfinite(arr).all() and (arr > 0).all()):
         with pytest.raises(ValueError, match="standard deviation"):
-            eskf._std3(value)  # type: ignore[arg-type]
+            eskf_state.std3(value)  # type: ignore[arg-type]
         return
-    np.testing.assert_array_equal(eskf._std3(value), np.maximum(arr, 1e-3))  # type: ignore[arg-type]
+    np.testing.assert_array_equal(eskf_state.std3(value), np.maximum(arr, 1e-3))  # type: ignore[arg-type]
 
 
 def test_gyro_matrix_inverse_in_closed_form_matches_numpy() -> None:
@@ -525,7 +526,7 @@ def test_gyro_matrix_inverse_in_closed_form_matches_numpy() -> None:
 def test_transition_written_in_one_call_matches_its_blocks(gyro_matrix_std: float) -> None:
     """The covariance transition's varying entries are computed as floats and written with
     one `put`; they must be the blocks the propagation is defined by."""
-    from companion.estimation import eskf
+    from companion.estimation import eskf_state
     from companion.estimation.quat import rotmat_f
     rng = np.random.default_rng(3)
     f = Eskf(gyro_matrix_std=gyro_matrix_std)
@@ -541,12 +542,12 @@ def test_transition_written_in_one_call_matches_its_blocks(gyro_matrix_std: floa
     f._pend_dth_f = tuple(th.tolist())
     f._propagate_covariance()
     rot0 = rotmat_f(*q.tolist())
-    ref = np.eye(eskf.N_STATES)
+    ref = np.eye(eskf_state.N_STATES)
     ref[0, 3] = ref[1, 4] = ref[2, 5] = dt
     ref[3:6, 6:9] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
     ref[3:6, 12:15] = rot0 * -dt
     ref[6:9, 9:12] = rot0 * -dt
     if gyro_matrix_std:
         rc = rot0 @ np.linalg.inv(np.eye(3) + f.gyro_matrix_estimate)
-        ref[6:9, eskf.IDX_GYRO_MATRIX] = (rc[:, :, None] * -th).reshape(3, 9)
+        ref[6:9, eskf_state.IDX_GYRO_MATRIX] = (rc[:, :, None] * -th).reshape(3, 9)
     np.testing.assert_allclose(f._f, ref, rtol=0, atol=1e-15)

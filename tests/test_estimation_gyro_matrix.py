@@ -17,16 +17,13 @@ import math
 import numpy as np
 import pytest
 
-from companion.estimation.eskf import IDX_GYRO_MATRIX, N_STATES, Eskf
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import IDX_GYRO_MATRIX, N_STATES
 from companion.estimation.fusion import EstimatorCore
-from companion.evaluation.sitl import (
-    EskfOptions,
-    FlightSpec,
-    estimator_param_defaults,
-    filter_errors,
-    record_flight,
-    run_eskf,
-)
+from companion.estimation.params import estimator_param_defaults
+from companion.evaluation.sitl import FlightSpec, record_flight
+from companion.evaluation.sitl_estimator import ESTIMATOR_PARAM_PREFIX, EskfOptions, run_eskf
+from companion.evaluation.sitl_scoring import filter_errors
 
 G = 9.80665
 
@@ -80,7 +77,7 @@ def test_on_the_states_couple_to_the_attitude_in_a_turn_and_learn() -> None:
 
 
 def test_the_parameter_turns_the_states_on_and_off_in_flight() -> None:
-    params = estimator_param_defaults()
+    params = estimator_param_defaults(ESTIMATOR_PARAM_PREFIX)
     assert params["GS_STD"] > 0.0  # on by default in the thread
     core = EstimatorCore(params, None)
     f = core.new_filter(moving=False)

@@ -24,7 +24,8 @@ import pytest
 from companion.estimation.replay.output import summary_dict, write_estimate_log
 from companion.estimation.replay.runner import ReplayOptions, clean_timeline, replay
 from companion.estimation.replay.sources import LogReadError, close_dfreader, read_flight_log
-from companion.evaluation.sitl import FlightSpec, SitlRecording, record_flight, run_eskf
+from companion.evaluation.sitl import FlightSpec, SitlRecording, record_flight
+from companion.evaluation.sitl_estimator import run_eskf
 from companion.logs import read_log
 
 REPO = Path(__file__).resolve().parents[1]

@@ -17,21 +17,17 @@ import pytest
 
 from companion.core.state import ImuSample, VehicleState
 from companion.core.sync import MessageQueue
+from companion.estimation.imu_filters import run_filter
 from companion.estimation.thread import EstimatorThread
-from companion.evaluation.sitl import (
+from companion.evaluation.sitl import FlightSpec, SitlRecording, record_flight
+from companion.evaluation.sitl_estimator import (
     EskfAsThread,
     EskfOptions,
     EskfRun,
-    FlightSpec,
-    SitlRecording,
-    filter_errors,
-    outage_growth,
-    record_flight,
+    imu_series,
     run_eskf,
-    run_madgwick,
-    run_vqf,
-    steady_turn_mask,
 )
+from companion.evaluation.sitl_scoring import filter_errors, outage_growth, steady_turn_mask
 from companion.vehicle import VEHICLE
 from companion.watchdog.thread import RuntimeContext
 
@@ -86,8 +82,8 @@ def test_project_estimator_beats_imu_only_filters_in_turns(
     assert turn.sum() > 2000
     run = turns_run
     ours = filter_errors(turns, run.quat, run=run)
-    vqf = filter_errors(turns, run_vqf(turns), zup=True)
-    madgwick = filter_errors(turns, run_madgwick(turns), zup=True)
+    vqf = filter_errors(turns, run_filter("vqf", imu_series(turns))[0], zup=True)
+    madgwick = filter_errors(turns, run_filter("madgwick", imu_series(turns))[0], zup=True)
 
     ours_turn = rms_deg(ours.inclination_rad[turn])
     vqf_turn = rms_deg(vqf.inclination_rad[turn])

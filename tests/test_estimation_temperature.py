@@ -19,22 +19,18 @@ import math
 import numpy as np
 import pytest
 
-from companion.estimation.eskf import (
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import (
     GYRO_TEMP_RESIDUAL,
     IDX_ACCEL_BIAS,
     IDX_GYRO_BIAS,
     IDX_GYRO_TEMP,
     TEMP_SPAN_C,
     TEMP_STEP_C,
-    Eskf,
 )
-from companion.evaluation.sitl import (
-    EskfOptions,
-    FlightSpec,
-    filter_errors,
-    record_flight,
-    run_eskf,
-)
+from companion.evaluation.sitl import FlightSpec, record_flight
+from companion.evaluation.sitl_estimator import EskfOptions, run_eskf
+from companion.evaluation.sitl_scoring import filter_errors
 
 GYRO_TC = 5e-4  # rad/s/C
 ACCEL_TC = 1.5e-3  # m/s^2/C

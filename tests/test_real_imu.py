@@ -21,6 +21,7 @@ from companion.estimation.quat import (
     quat_to_rotvec,
 )
 from companion.evaluation import realdata as rd
+from companion.evaluation import realdata_scoring as rs
 
 G = 9.80665
 
@@ -101,7 +102,7 @@ def test_alignment_recovers_a_known_mounting_and_lag() -> None:
     estimated = rd.fit_alignment(rec, lag_s=None)
     assert abs(estimated.lag_s - (-0.06)) <= 0.011
     # the true vertical in the sensor frame is what a perfect filter reports: zero error
-    err = rd.inclination_errors_rad(rec, fixed, q_sensor, "enu", skip_s=3.0)
+    err = rs.inclination_errors_rad(rec, fixed, q_sensor, "enu", skip_s=3.0)
     assert math.degrees(float(err.max())) < 0.5
 
 
@@ -127,16 +128,16 @@ def test_per_sample_time_stamps_match_a_regular_rate_and_handle_jitter() -> None
     assert not np.allclose(a, c, atol=1e-3)  # the real, jittered stamps are used
     with pytest.raises(ValueError, match="t_s"):
         estimate_attitude(rec.gyro_rad_s, rec.accel_m_s2, 100.0, t_s=regular[:-1])
-    timed = rd.score_recording(rec, ("vqf",), with_timed=True, skip_s=rec.score_from_s)
+    timed = rs.score_recording(rec, ("vqf",), with_timed=True, skip_s=rec.score_from_s)
     assert timed["ours_timed"].rmse_deg < 1.1 * timed["vqf"].rmse_deg
 
 
 def test_ours_against_vqf_on_held_out_recordings() -> None:
     """Every held-out recording (the speeds V1000 and V1500, the MPU6500 at every speed)."""
-    results = rd.score_leiria([n for n in rd.list_leiria() if rd.is_held_out(n)], ("ours", "vqf"))
+    results = rs.score_leiria([n for n in rd.list_leiria() if rd.is_held_out(n)], ("ours", "vqf"))
     assert len(results) == 38 and all(r.held_out for r in results)
-    ours = rd.mean_rmse_deg(results, "ours")
-    vqf = rd.mean_rmse_deg(results, "vqf")
+    ours = rs.mean_rmse_deg(results, "ours")
+    vqf = rs.mean_rmse_deg(results, "vqf")
     print(f"held out: ours {ours:.3f} deg, VQF {vqf:.3f} deg, ratio {ours / vqf:.3f}")
     assert 1.0 < vqf < 6.0
     # The issue's target was 0.9 x VQF; measured: 0.985 (docs/benchmarks.md, "IMU-only attitude

@@ -262,7 +262,8 @@ def test_the_camera_thread_hands_off_no_earlier_than_the_latency() -> None:
 
 
 def test_the_estimator_fuses_the_cameras_measurements() -> None:
-    from companion.evaluation.sitl import EskfOptions, FlightSpec, record_flight, run_eskf
+    from companion.evaluation.sitl import FlightSpec, record_flight
+    from companion.evaluation.sitl_estimator import EskfOptions, run_eskf
 
     rec = record_flight(FlightSpec(duration_s=20.0, scenario="turns", seed=1))
     cam = SimCamera(1, disturbance="light")

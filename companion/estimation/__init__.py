@@ -17,15 +17,16 @@ from companion.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from companion.estimation.attitude import AttitudeFilter, estimate_attitude
-    from companion.estimation.eskf import Eskf, EskfState, EstimatorFault, UpdateResult
+    from companion.estimation.eskf import Eskf
+    from companion.estimation.eskf_state import EskfState, EstimatorFault, UpdateResult
 
 _EXPORTS = {
     "AttitudeFilter": "companion.estimation.attitude",
     "estimate_attitude": "companion.estimation.attitude",
     "Eskf": "companion.estimation.eskf",
-    "EskfState": "companion.estimation.eskf",
-    "EstimatorFault": "companion.estimation.eskf",
-    "UpdateResult": "companion.estimation.eskf",
+    "EskfState": "companion.estimation.eskf_state",
+    "EstimatorFault": "companion.estimation.eskf_state",
+    "UpdateResult": "companion.estimation.eskf_state",
 }
 
 __all__ = [

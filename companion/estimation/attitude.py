@@ -32,9 +32,6 @@ is a small error-state Kalman filter instead:
 Use :class:`AttitudeFilter` on board (one :meth:`~AttitudeFilter.update` per IMU sample, with
 that sample's own period) and :func:`estimate_attitude` for recordings (a nominal rate, or the
 samples' time stamps ``t_s``).
-
-Size: one filter (state, predict, update, covariance care) and its batch helper; splitting
-the filter's equations across files would hide how they fit together.
 """
 
 from __future__ import annotations

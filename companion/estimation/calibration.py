@@ -103,7 +103,7 @@ def learnt_from_log(path: str | os.PathLike[str]) -> GyroCalibration:
     calibration record (a log from before the records existed, or a flight without GPS),
     covers less than ``MIN_FLIGHT_S`` of estimator time, or its values are not finite.
     """
-    from companion.estimation.thread import CAL_COLUMNS, FMT_CAL
+    from companion.estimation.logformats import CAL_COLUMNS, FMT_CAL
     from companion.logs.reader import read_log
     from companion.logs.streams import LogFormatError
 

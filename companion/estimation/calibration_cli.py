@@ -51,14 +51,16 @@ def cmd_calibration(args: argparse.Namespace) -> int:
         learnt_from_log,
         next_flight_params,
     )
-    from companion.estimation.thread import estimator_param_defaults
+    from companion.estimation.params import estimator_param_defaults
+    from companion.vehicle import VEHICLE
 
     try:
         cal = learnt_from_log(args.log)
     except CalibrationLogError as exc:
         print(f"companion estimation calibration: {exc}", file=sys.stderr)
         return EXIT_BAD_LOG
-    params = next_flight_params(cal, estimator_param_defaults())
+    params = next_flight_params(
+        cal, estimator_param_defaults(VEHICLE["estimator"].task.param_prefix))
     if args.json:
         out: dict[str, Any] = {
             "log": str(args.log), "flight_s": round(cal.flight_s, 1),

@@ -5,15 +5,18 @@
 uncertainty when the aircraft is evidently not still), the IMU period from the frame counters,
 the GPS measurement model (position in the shared NED frame, standard deviations from HDOP, GST
 and the parameters, an unmeasured vertical velocity left unconstrained) and its latency, and the
-horizon weighting. The estimator thread wraps it with queues, slots and logs; the SITL
-evaluation (`companion.evaluation.sitl`) drives it directly, so what is benchmarked is what flies.
+horizon weighting, and the one estimator cycle (`EstimatorCore.cycle`). The estimator thread
+wraps it with queues, slots and logs; the replay (`companion.estimation.replay`) and the SITL
+evaluation (`companion.evaluation.sitl_estimator`) drive the same cycle, so what is replayed
+and benchmarked is what flies.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,7 +24,8 @@ import numpy as np
 from companion.core.geo import NedFrame
 from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.estimation.calibration import GYRO_MATRIX_PARAMS, GYRO_TEMP_PARAMS
-from companion.estimation.eskf import Eskf, UpdateResult
+from companion.estimation.eskf import Eskf
+from companion.estimation.eskf_state import UpdateResult
 from companion.estimation.quat import quat_from_euler, quat_multiply_f
 
 log = logging.getLogger(__name__)
@@ -58,6 +62,16 @@ def _turned(m: tuple[tuple[float, float, float], ...],
     return (m[0][0] * x + m[0][1] * y + m[0][2] * z,
             m[1][0] * x + m[1][1] * y + m[1][2] * z,
             m[2][0] * x + m[2][1] * y + m[2][2] * z)
+
+
+@dataclass(frozen=True)
+class HeadingFix:
+    """A heading of the airframe from a sensor other than the GPS receiver (whose heading comes
+    with its fix): a magnetometer, or an evaluation's stand-in for one."""
+
+    yaw_rad: float
+    std_rad: float
+    latency_s: float = 0.0
 
 
 class EstimatorCore:
@@ -347,11 +361,15 @@ class EstimatorCore:
     def fuse_heading(self, heading_deg: float, latency_s: float) -> bool:
         """A dual-antenna receiver's heading (HDT) of the same epoch as the fix, the baseline's
         yaw on the airframe (`HDG_OFS`) taken off; False when the filter refused it."""
-        f = self.filter
-        if f is None or not math.isfinite(heading_deg):
-            return False
         yaw = math.radians(heading_deg) - self.p.get("HDG_OFS", 0.0)
-        if f.update_heading(yaw, self.p.get("HDG_STD", 0.01), latency_s).accepted:
+        return self.fuse_yaw(yaw, self.p.get("HDG_STD", 0.01), latency_s)
+
+    def fuse_yaw(self, yaw_rad: float, std_rad: float, latency_s: float = 0.0) -> bool:
+        """A heading of the airframe with its 1-sigma; False when the filter refused it."""
+        f = self.filter
+        if f is None or not math.isfinite(yaw_rad):
+            return False
+        if f.update_heading(yaw_rad, std_rad, latency_s).accepted:
             self.heading_used += 1
             return True
         self.heading_rejected += 1
@@ -375,14 +393,33 @@ class EstimatorCore:
         return False
 
     def cycle(self, samples: Sequence[ImuSample], fix: GpsFix | None = None,
-              horizon: HorizonMeasurement | None = None) -> bool:
-        """One estimator cycle: the IMU samples that arrived, then the newest GPS and horizon
-        fix. Returns True once the filter runs (after the initial phase)."""
+              horizon: HorizonMeasurement | None = None, *,
+              temperature_c: float | None = None, heading: HeadingFix | None = None,
+              on_gps: Callable[[UpdateResult, float], None] | None = None) -> bool:
+        """One estimator cycle, the only one: the thread, the replay and the evaluations all run
+        it. In this order: the IMU samples that arrived, the newest GPS fix (with its receiver's
+        heading), the IMU's temperature, the horizon fix, then a heading fix from elsewhere.
+
+        ``on_gps(result, latency_s)`` is called as the fix is fused, before the temperature and
+        the horizon move the filter (the thread logs it then). Before the filter runs, the
+        samples and the fix feed the initial phase; a filter that starts in this cycle takes
+        the cycle's temperature and nothing else. Returns True once the filter runs.
+        """
         if self.filter is None:
-            return self.initial_phase(samples, fix)
+            if not self.initial_phase(samples, fix):
+                return False
+            if temperature_c is not None:
+                self.set_temperature(temperature_c)
+            return True
         self.predict(samples)
         if fix is not None:
-            self.fuse_gps(fix)
+            fused = self.fuse_gps(fix)
+            if fused is not None and on_gps is not None:
+                on_gps(*fused)
+        if temperature_c is not None:
+            self.set_temperature(temperature_c)
         if horizon is not None:
             self.fuse_horizon(horizon)
+        if heading is not None:
+            self.fuse_yaw(heading.yaw_rad, heading.std_rad, heading.latency_s)
         return True

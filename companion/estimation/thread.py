@@ -2,9 +2,10 @@
 
 Initial phase (the aperiodic prologue, as in the thesis): average the IMU for EST_INIT_S to
 level the attitude and take the gyro bias, and wait for a GPS fix. Periodic section, paced by
-the IMU: every sample is integrated (all of them, from the IMU stream queue, not only the newest),
-then the newest GPS fix and horizon attitude, if any, are fused with their latencies. The result
-goes to the estimator slot (control reads it), the log and the bridges.
+the IMU: one `EstimatorCore.cycle` integrates every sample (all of them, from the IMU stream
+queue, not only the newest), then fuses the newest GPS fix, IMU temperature and horizon
+attitude, if any, with their latencies. The result goes to the estimator slot (control reads
+it), the log (companion.estimation.logformats) and the bridges.
 
 A filter divergence is repaired inside the filter and counted as an estimator fault
 (`faults`); it never raises, so it never costs a thread restart.
@@ -27,14 +28,23 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from companion.core.params import ParamError, ParamSpec, float_param, int_param
+from companion.core.params import ParamError, ParamSpec
 from companion.core.state import EstimatorState, ImuSample
+from companion.estimation.logformats import (
+    CAL_EVERY,
+    FMT_CAL,
+    FMT_GPS,
+    FMT_STATE,
+    define_estimator_logs,
+)
+from companion.estimation.params import estimator_param_specs
 from companion.watchdog.thread import ManagedThread, Task
 
 if TYPE_CHECKING:
     # the filter loads when the thread starts, not when its
     # parameters are listed (`companion params`, the docs)
     from companion.estimation.eskf import Eskf
+    from companion.estimation.eskf_state import UpdateResult
     from companion.estimation.fusion import EstimatorCore
 
 log = logging.getLogger(__name__)
@@ -54,40 +64,6 @@ class _LevelRequest:
     rates: list[tuple[float, float, float]] = field(default_factory=list)
     accel: list[tuple[float, float, float]] = field(default_factory=list)
 
-FMT_STATE = 1
-FMT_GPS = 2
-FMT_CAL = 3
-CAL_EVERY = 10
-"""GPS fusions between two calibration records (once a second with a 10 Hz receiver)."""
-STATE_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_m",
-                 "vn_m_s", "ve_m_s", "vd_m_s", "gbx_rad_s", "gby_rad_s", "gbz_rad_s",
-                 "bax_m_s2", "bay_m_s2", "baz_m_s2", "std_n_m", "std_e_m", "std_d_m",
-                 "std_vn_m_s", "std_ve_m_s", "std_vd_m_s", "std_roll_rad", "std_pitch_rad",
-                 "std_yaw_rad", "faults", "aligned"]
-GPS_COLUMNS = ["in_n_m", "in_e_m", "in_d_m", "in_vn_m_s", "in_ve_m_s", "in_vd_m_s", "nis",
-               "accepted", "latency_s", "gps_lag_s", "gps_lag_std_s", "gyro_scale_x",
-               "gyro_scale_y", "gyro_scale_z", "gyro_temp_x", "gyro_temp_y", "gyro_temp_z"]
-"""Per fused fix: innovations, NIS, verdict, the whole latency applied, and the receiver delay
-the filter estimates within it (with its 1-sigma), the gyro scale-factor errors it estimates
-(the diagonal of ``EST_GS_STD``'s matrix; fractions, 0 when not estimated) and the gyro
-bias's temperature coefficient it estimates (rad/s per degree C, 0 without ``EST_GB_TEMP``)."""
-CAL_COLUMNS = ([f"gm_{r}{c}" for r in "xyz" for c in "xyz"]
-               + [f"gm_std_{r}{c}" for r in "xyz" for c in "xyz"]
-               + ["gt_x", "gt_y", "gt_z", "gt_std_x", "gt_std_y", "gt_std_z"])
-"""What the filter has learnt of the gyro (`Eskf.gyro_calibration`): its matrix error and
-temperature coefficient with their 1-sigma, so ``companion estimation calibration`` can hand
-them to the next flight (companion.estimation.calibration)."""
-
-
-def estimator_param_defaults(prefix: str = "EST") -> dict[str, float]:
-    """The estimator thread's parameter defaults, by suffix (``GPS_LAG``, ``GYR_NSD``...).
-
-    Read from the class's metadata (no thread is built), so evaluations and tools follow the
-    thread's defaults instead of copying them.
-    """
-    return {spec.name.removeprefix(prefix + "_"): float(spec.default)
-            for spec in EstimatorThread.declare_params(prefix)}
-
 
 class EstimatorThread(ManagedThread):
     def __init__(self, *, task: Task) -> None:
@@ -104,97 +80,10 @@ class EstimatorThread(ManagedThread):
 
     @classmethod
     def declare_params(cls, p: str) -> list[ParamSpec]:
-        return [
-            float_param(f"{p}_INIT_S", 1.0, 0.1, 60.0, "s",
-                        "Initial phase: IMU averaging time that levels the attitude and takes "
-                        "the gyro bias before the filter starts."),
-            float_param(f"{p}_GYR_NSD", 0.001, 1e-5, 1.0, "rad/s/rtHz",
-                        "Gyro white-noise density (angle random walk), widened beyond a "
-                        "datasheet's to cover vibration and g-sensitivity the filter does not "
-                        "model."),
-            float_param(f"{p}_ACC_NSD", 0.05, 1e-4, 5.0, "m/s^2/rtHz",
-                        "Accelerometer white-noise density."),
-            float_param(f"{p}_GB_RW", 2e-4, 1e-8, 0.01, "rad/s/rts",
-                        "Gyro bias random walk (wide enough to follow a consumer part warming "
-                        "up: about 1 deg/s over its first minutes)."),
-            float_param(f"{p}_AB_RW", 1e-3, 1e-7, 0.1, "m/s^2/rts",
-                        "Accelerometer bias random walk."),
-            float_param(f"{p}_GS_STD", 0.015, 0.0, 0.1, "",
-                        "1-sigma of each element of the gyro's scale-factor and cross-axis "
-                        "error before the flight (fraction; a consumer part's +-3 % "
-                        "tolerance is about 0.01 at 1 sigma, and the prior is kept wider "
-                        "than that): the filter estimates the 3x3 error in turns. 0 takes "
-                        "the gyro's scale as exact."),
-            float_param(f"{p}_GB_TEMP", 1.5e-3, 0.0, 0.01, "rad/s/degC",
-                        "Gyro bias change per degree of IMU temperature, 1-sigma: the prior "
-                        "of the coefficient the filter estimates per axis while the part "
-                        "warms up (a consumer MEMS part's datasheet allows about 0.05 deg/s/C "
-                        "at 1 sigma; the prior is kept wider, 0.086 deg/s/C). 0 ignores the "
-                        "temperature."),
-            *[float_param(f"{p}_GM_{r}{c}", 0.0, -0.1, 0.1, "",
-                          f"Gyro matrix error, row {r.lower()}, column {c.lower()} (the part "
-                          "reads (I + M) w + bias): where the filter's estimate starts, from "
-                          "what a previous flight of this part learnt (`companion estimation "
-                          "calibration`); EST_GS_STD is its 1-sigma. 0 with no such flight.")
-              for r in "XYZ" for c in "XYZ"],
-            *[float_param(f"{p}_GT_{a}", 0.0, -0.01, 0.01, "rad/s/degC",
-                          f"Gyro {a.lower()} bias temperature coefficient where the filter's "
-                          "estimate starts, from a previous flight of this part (`companion "
-                          "estimation calibration`); EST_GB_TEMP is its 1-sigma.")
-              for a in "XYZ"],
-            float_param(f"{p}_AB_TEMP", 1.5e-3, 0.0, 0.1, "m/s^2/degC",
-                        "Accelerometer bias change per degree of IMU temperature, 1-sigma "
-                        "(0.15 mg/C). 0 ignores the temperature."),
-            float_param(f"{p}_GPS_HSTD", 1.0, 0.05, 100.0, "m",
-                        "GPS horizontal position 1-sigma per unit HDOP."),
-            float_param(f"{p}_GPS_VSTD", 2.0, 0.05, 100.0, "m",
-                        "GPS vertical position 1-sigma (GST altitude std used when larger)."),
-            float_param(f"{p}_TRIM_ROLL", 0.0, -0.5, 0.5, "rad",
-                        "IMU board roll against the airframe (level calibration): samples are "
-                        "turned into airframe axes before the filter."),
-            float_param(f"{p}_TRIM_PITCH", 0.0, -0.5, 0.5, "rad",
-                        "IMU board pitch against the airframe (level calibration)."),
-            float_param(f"{p}_TRIM_YAW", 0.0, -0.5, 0.5, "rad",
-                        "IMU board yaw against the airframe (a level calibration cannot see it; "
-                        "measure it on the ground)."),
-            int_param(f"{p}_TRIM_BIAS", 1, 0, 1, "",
-                      "1: TRIM_ROLL/PITCH come from a level calibration, which read that "
-                      "moment's accelerometer bias as a board tilt; the filter gives that tilt "
-                      "back as it learns the bias in flight. 0 for trims measured otherwise "
-                      "(no effect while both are 0)."),
-            float_param(f"{p}_GPS_VEL", 0.25, 0.01, 10.0, "m/s",
-                        "GPS velocity 1-sigma (a receiver's own figure is about 0.05 m/s; "
-                        "the rest covers its latency jitter in turns)."),
-            float_param(f"{p}_GPS_LAG", 0.05, 0.0, 0.5, "s",
-                        "Receiver output delay beyond the latency the driver measures: the "
-                        "starting guess, refined online unless GPS_LAGSD is 0."),
-            float_param(f"{p}_GPS_LAGSD", 0.1, 0.0, 0.5, "s",
-                        "1-sigma of the GPS_LAG guess; the filter estimates the delay from "
-                        "turns and accelerations. 0 trusts GPS_LAG as exact."),
-            int_param(f"{p}_HZN_USE", 1, 0, 1, "",
-                      "1 fuses horizon attitude (HORIZON_ATTITUDE / MAVLink) weighted by quality."),
-            float_param(f"{p}_HZN_STD", 0.05, 0.001, 1.0, "rad",
-                        "Horizon roll/pitch 1-sigma at quality 1."),
-            int_param(f"{p}_HDG_USE", 1, 0, 1, "",
-                      "1 fuses a dual-antenna receiver's heading (NMEA HDT, GPS_HDT) with its "
-                      "fix. Only an unbiased heading helps: in a turn a heading error becomes "
-                      "a tilt error, so measure HDG_OFS on the ground."),
-            float_param(f"{p}_HDG_STD", 0.01, 0.0001, 1.0, "rad",
-                        "1-sigma of the receiver's heading (about the relative position's "
-                        "error over the antenna baseline: 0.01 rad for 5 mm over 0.5 m)."),
-            float_param(f"{p}_HDG_OFS", 0.0, -math.pi, math.pi, "rad",
-                        "Yaw of the antenna baseline (first to second antenna) against the "
-                        "airframe's forward axis, clockwise: 0 with the second antenna straight "
-                        "ahead of the first, pi/2 with the first on the left wing and the "
-                        "second on the right."),
-        ]
+        return estimator_param_specs(p)
 
     def define_logs(self, tlog: Any) -> None:
-        tlog.define(FMT_STATE, ",".join(["%.6f"] * 3 + ["%.3f"] * 6 + ["%.6f"] * 6
-                                        + ["%.4f"] * 9) + ",%u,%hhu", STATE_COLUMNS)
-        tlog.define(FMT_GPS, ",".join(["%.3f"] * 6) + ",%.3f,%hhu,%.3f,%.4f,%.4f,%.5f,%.5f,%.5f"
-                    + ",%.7f,%.7f,%.7f", GPS_COLUMNS)
-        tlog.define(FMT_CAL, ",".join(["%.6f"] * 18 + ["%.8f"] * 6), CAL_COLUMNS)
+        define_estimator_logs(tlog)
 
     def _params(self) -> dict[str, float]:
         prefix = self.param_prefix + "_"
@@ -281,7 +170,7 @@ class EstimatorThread(ManagedThread):
     def prologue(self) -> bool:
         state = self.ctx.state
         clock = self.ctx.clock
-        from companion.estimation.eskf import IDX_ATT, IDX_POS, IDX_VEL
+        from companion.estimation.eskf_state import IDX_ATT, IDX_POS, IDX_VEL
         from companion.estimation.fusion import EstimatorCore
 
         # the logged standard deviations
@@ -321,34 +210,41 @@ class EstimatorThread(ManagedThread):
         samples = [first, *stream.drain()]
         if self._level is not None:
             self._collect_level(samples)
-        core.predict(samples)
         fix, version, _ = self.ctx.state.gps.read_versioned()
         if fix is not None and version != self._gps_seen:
             self._gps_seen = version
-            fused = core.fuse_gps(fix)
-            if fused is not None and self.tlog is not None:
-                res, latency = fused
-                f = core.filter
-                if res.innovation.size == 6 and f is not None:
-                    self.tlog.log(FMT_GPS, *res.innovation.tolist(),
-                                  res.nis if math.isfinite(res.nis) else -1.0,
-                                  int(res.accepted), latency, f.gps_lag_estimate_s,
-                                  f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal(),
-                                  *f.gyro_temp_estimate_rad_s_per_c)
-                    self._fused += 1
-                    if self._fused % CAL_EVERY == 1:
-                        m, m_std, k, k_std = f.gyro_calibration()
-                        self.tlog.log(FMT_CAL, *m, *m_std, *k, *k_std)
+        else:
+            fix = None
+        temperature_c = None
         slow, slow_version, _ = self.ctx.state.imu_slow.read_versioned()
         if slow is not None and slow_version != self._temp_seen:
             self._temp_seen = slow_version
-            core.set_temperature(slow.temperature_c)
+            temperature_c = slow.temperature_c
         h, h_version, _ = self.ctx.state.horizon.read_versioned()
         if h is not None and h_version != self._hzn_seen:
             self._hzn_seen = h_version
-            core.fuse_horizon(h)
+        else:
+            h = None
+        core.cycle(samples, fix, h, temperature_c=temperature_c, on_gps=self._log_gps)
         self._publish(core.filter)
         return len(samples)
+
+    def _log_gps(self, res: UpdateResult, latency_s: float) -> None:
+        """A fused fix's record, taken as the cycle fuses it (before the temperature and the
+        horizon move the filter), and every `CAL_EVERY` fixes what the filter learnt of the
+        gyro."""
+        f = self.core.filter if self.core is not None else None
+        if self.tlog is None or res.innovation.size != 6 or f is None:
+            return
+        self.tlog.log(FMT_GPS, *res.innovation.tolist(),
+                      res.nis if math.isfinite(res.nis) else -1.0,
+                      int(res.accepted), latency_s, f.gps_lag_estimate_s,
+                      f.gps_lag_estimate_std_s, *f.gyro_matrix_diagonal(),
+                      *f.gyro_temp_estimate_rad_s_per_c)
+        self._fused += 1
+        if self._fused % CAL_EVERY == 1:
+            m, m_std, k, k_std = f.gyro_calibration()
+            self.tlog.log(FMT_CAL, *m, *m_std, *k, *k_std)
 
     def counters(self) -> dict[str, int]:
         """What the filter did with its aiding, for the flight summary: whether a camera's

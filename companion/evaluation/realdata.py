@@ -38,16 +38,14 @@ Why the comparison is built the way it is:
   sees it in the sensor frame and the true vertical in the sensor frame, so a 6-D filter's
   free heading and the robot base's heading do not enter.
 
-Size: loading, resampling, aligning and scoring are one comparison procedure whose every step
-must be applied identically to every filter; split, each part would have to restate the data
-conventions (units per device, quaternion sign and conjugation, the truth's delay) it relies on.
+Scoring the filters on these recordings is :mod:`companion.evaluation.realdata_scoring`; the
+filters themselves are :mod:`companion.estimation.imu_filters`'s, as in the SITL evaluation.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -212,7 +210,7 @@ def truth_valid_from_s(rec: ImuRecording, search_fraction: float = 0.3) -> float
     end of the last such jump in the first ``search_fraction`` of the recording: a 0.1 s step
     in which the truth turns more than 5 degrees while the gyro integrates less than 1.
     """
-    truth = _truth(rec)
+    truth = truth_wxyz(rec)
     u = resample_uniform(rec, 100.0)
     q = interpolate_quat(rec.t_s, truth, u.t_s)
     start = 0.0
@@ -393,7 +391,7 @@ def estimate_lag_s(rec: ImuRecording, max_lag_s: float = 0.3) -> float:
     return float((lags[i] + frac) / 100.0)
 
 
-def _wahba(a: FloatArray, b: FloatArray, w: FloatArray) -> FloatArray:
+def wahba(a: FloatArray, b: FloatArray, w: FloatArray) -> FloatArray:
     """Rotation R minimising sum w |a_i - R b_i|^2 (SVD solution of Wahba's problem)."""
     m = (a * w[:, None]).T @ b
     u, _, vt = np.linalg.svd(m)
@@ -428,7 +426,7 @@ def fit_alignment(
     if rec.truth_wxyz is None:
         raise ValueError("fit_alignment: the recording has no truth")
     u = resample_uniform(rec, 100.0)
-    truth_u = _truth(u)
+    truth_u = truth_wxyz(u)
     step = max(1, int(round(window_s * 100.0)))
     gyro = u.gyro_rad_s
     clipped: np.ndarray = np.asarray((np.abs(gyro) >= CLIP_RAD_S).any(axis=1))
@@ -454,7 +452,7 @@ def fit_alignment(
         weight = np.ones(len(a))
         for _ in range(5):
             # robust: windows far off the fit (a truth hiccup, a clock jump) are left out
-            mount = _wahba(a, b, weight)
+            mount = wahba(a, b, weight)
             resid = np.linalg.norm(a - b @ mount.T, axis=1)
             weight = (resid <= max(3.0 * float(np.median(resid)), math.radians(2.0))).astype(float)
         kept = resid[weight > 0]
@@ -477,7 +475,8 @@ def fit_alignment(
                      up / np.linalg.norm(up), residual)
 
 
-def _truth(rec: ImuRecording) -> FloatArray:
+def truth_wxyz(rec: ImuRecording) -> FloatArray:
+    """The recording's truth quaternions (ValueError if it has none)."""
     if rec.truth_wxyz is None:
         raise ValueError(f"{rec.name} has no truth")
     return rec.truth_wxyz
@@ -507,9 +506,9 @@ def consistent_from_s(
     truth's; scoring starts after the last window of the first ``search_fraction`` of the
     recording that disagrees by more than ``max_disagreement_rad``. No filter output enters.
     """
-    truth = interpolate_quat(rec.t_s, _truth(rec), rec.t_s + align.lag_s)
+    truth = interpolate_quat(rec.t_s, truth_wxyz(rec), rec.t_s + align.lag_s)
     u = resample_uniform(replace(rec, truth_wxyz=truth), 100.0)
-    q_truth = _truth(u)
+    q_truth = truth_wxyz(u)
     step = max(1, int(round(window_s * 100.0)))
     start = rec.score_from_s
     stop = int(len(u.t_s) * search_fraction)
@@ -529,7 +528,7 @@ def consistent_from_s(
 
 def true_up_sensor(rec: ImuRecording, align: Alignment) -> FloatArray:
     """The true vertical (up, unit) in the sensor frame at each sample of ``rec``."""
-    truth = interpolate_quat(rec.t_s, _truth(rec), rec.t_s + align.lag_s)
+    truth = interpolate_quat(rec.t_s, truth_wxyz(rec), rec.t_s + align.lag_s)
     rot = quat_to_rotmat(truth)
     # up_sensor = mount^T @ truth^T @ up_base
     up_tool = np.einsum("nji,j->ni", rot, align.up_base)
@@ -554,203 +553,3 @@ def angle_between_rad(a: FloatArray, b: FloatArray) -> FloatArray:
     cos = np.sum(a * b, axis=-1)
     sin = np.linalg.norm(np.cross(a, b), axis=-1)
     return np.arctan2(sin, cos)  # type: ignore[no-any-return]
-
-
-# ---------------------------------------------------------------------------------------------
-# filters and scoring
-
-FilterFn = Callable[[ImuRecording], tuple[FloatArray, str]]
-"""A filter run: recording in, (N, 4) attitudes and their frame ("ned" or "enu") out."""
-
-
-def run_ours(rec: ImuRecording) -> tuple[FloatArray, str]:
-    """The project's filter, defaults, on uniform samples (rate from the grid)."""
-    from companion.estimation.attitude import estimate_attitude
-
-    rate = 1.0 / float(np.median(np.diff(rec.t_s)))
-    return estimate_attitude(rec.gyro_rad_s, rec.accel_m_s2, rate), "ned"
-
-
-def run_ours_timed(rec: ImuRecording) -> tuple[FloatArray, str]:
-    """The project's filter, defaults, on the samples' own time stamps (per-sample dt)."""
-    from companion.estimation.attitude import estimate_attitude
-
-    rate = 1.0 / float(np.median(np.diff(rec.t_s)))
-    return estimate_attitude(rec.gyro_rad_s, rec.accel_m_s2, rate, t_s=rec.t_s), "ned"
-
-
-def run_vqf(rec: ImuRecording) -> tuple[FloatArray, str]:
-    """VQF 6-D (the ``vqf`` package, default parameters) with its fixed sample period."""
-    from vqf import VQF
-
-    ts = float(np.median(np.diff(rec.t_s)))
-    filt = VQF(ts)
-    out = filt.updateBatch(np.ascontiguousarray(rec.gyro_rad_s),
-                           np.ascontiguousarray(rec.accel_m_s2))
-    return np.asarray(out["quat6D"], dtype=float), "enu"
-
-
-def run_madgwick(rec: ImuRecording) -> tuple[FloatArray, str]:
-    """Madgwick (``ahrs``), default gain, started level with the first accelerometer sample."""
-    from ahrs.filters import Madgwick
-
-    ts = float(np.median(np.diff(rec.t_s)))
-    filt = Madgwick(frequency=1.0 / ts)
-    a0 = rec.accel_m_s2[0] / np.linalg.norm(rec.accel_m_s2[0])
-    # z-up frame: the level quaternion rotates the body's measured up onto (0, 0, 1)
-    axis = np.cross(a0, (0.0, 0.0, 1.0))
-    ang = math.atan2(float(np.linalg.norm(axis)), float(a0[2]))
-    n = float(np.linalg.norm(axis))
-    q = (np.array((1.0, 0.0, 0.0, 0.0)) if n < 1e-9
-         else np.concatenate(([math.cos(ang / 2)], math.sin(ang / 2) * axis / n)))
-    out = np.empty((len(rec.t_s), 4))
-    for k in range(len(rec.t_s)):
-        q = filt.updateIMU(q, rec.gyro_rad_s[k], rec.accel_m_s2[k])
-        out[k] = q
-    return out, "enu"
-
-
-FILTERS: dict[str, FilterFn] = {
-    "ours": run_ours,
-    "vqf": run_vqf,
-    "madgwick": run_madgwick,
-}
-
-
-@dataclass(frozen=True)
-class Score:
-    """Inclination error statistics of one filter on one recording, degrees."""
-
-    rmse_deg: float
-    mean_deg: float
-    p95_deg: float
-    max_deg: float
-
-    @classmethod
-    def of(cls, err_rad: FloatArray) -> Score:
-        e = np.degrees(err_rad)
-        return cls(float(np.sqrt(np.mean(e**2))), float(np.mean(e)),
-                   float(np.percentile(e, 95)), float(np.max(e)))
-
-
-def inclination_errors_rad(
-    rec: ImuRecording, align: Alignment, q_wxyz: FloatArray, frame: str, skip_s: float = 0.0
-) -> FloatArray:
-    """Per-sample inclination error of one filter's output on ``rec`` (after ``skip_s``)."""
-    err = angle_between_rad(up_sensor_from_quat(q_wxyz, frame), true_up_sensor(rec, align))
-    return err[rec.t_s - rec.t_s[0] >= skip_s]  # type: ignore[no-any-return]
-
-
-def score_recording(
-    raw: ImuRecording,
-    filters: Sequence[str] = ("ours", "vqf"),
-    rate_hz: float = RESAMPLE_RATE_HZ,
-    with_timed: bool = False,
-    skip_s: float = 0.0,
-) -> dict[str, Score]:
-    """Every named filter on the same resampled samples, one alignment, one truth.
-
-    ``with_timed`` adds ``"ours_timed"``: our filter on the raw irregular samples and their
-    time stamps, scored against the same alignment. Scoring starts at
-    :func:`consistent_from_s` (or ``skip_s`` if later); every filter runs from the first sample.
-    """
-    align = fit_alignment(raw)
-    skip_s = max(skip_s, consistent_from_s(raw, align))
-    uni = resample_uniform(raw, rate_hz)
-    out: dict[str, Score] = {}
-    for name in filters:
-        q, frame = FILTERS[name](uni)
-        out[name] = Score.of(inclination_errors_rad(uni, align, q, frame, skip_s))
-    if with_timed:
-        q, frame = run_ours_timed(raw)
-        out["ours_timed"] = Score.of(inclination_errors_rad(raw, align, q, frame, skip_s))
-    return out
-
-
-def score_xsens(speed: str, path: int, root: Path = LEIRIA_DIR) -> Score | None:
-    """The XSENS unit's own orientation against the truth; alignment fitted on its output.
-
-    The XSENS file carries no raw samples, so its mounting is fitted to its own output: the
-    rotation that best maps its vertical onto the truth's (Wahba on the up vectors, with the
-    robot base's vertical and the acquisition's lag as for the IMUs). This favours the XSENS
-    figures slightly. The first :data:`XSENS_SKIP_S` are left out (the robot's start-up).
-    """
-    rec = load_leiria_xsens(speed, path, root)
-    if rec is None or rec.reference_wxyz is None:
-        return None
-    truth = interpolate_quat(rec.t_s, _truth(rec), rec.t_s + TRUTH_LAG_S)
-    # XSENS quaternions rotate sensor vectors into its z-up navigation frame
-    up_est = up_sensor_from_quat(rec.reference_wxyz, "enu")
-    up_tool = np.einsum("nji,j->ni", quat_to_rotmat(truth), ROBOT_UP_BASE)
-    scored = rec.t_s - rec.t_s[0] >= XSENS_SKIP_S
-    weight = scored.astype(float)
-    for _ in range(5):
-        mount = _wahba(up_tool, up_est, weight)
-        resid = angle_between_rad(up_est @ mount.T, up_tool)
-        weight = (scored & (resid <= max(3.0 * float(np.median(resid[scored])),
-                                         math.radians(2.0)))).astype(float)
-    err = angle_between_rad(up_est, up_tool @ mount)
-    return Score.of(err[scored])
-
-
-XSENS_SKIP_S = 2.5
-"""The robot's start-up glitches end within 2.4 s in every raw-IMU recording."""
-
-
-@dataclass(frozen=True)
-class SequenceResult:
-    """One recording's scores, per filter, and whether it was held out of the tuning."""
-
-    name: str
-    held_out: bool
-    scores: dict[str, Score]
-
-
-def score_leiria(
-    names: Sequence[str] | None = None,
-    filters: Sequence[str] = ("ours", "vqf"),
-    with_timed: bool = False,
-    root: Path = LEIRIA_DIR,
-) -> list[SequenceResult]:
-    """:func:`score_recording` on every named recording of the subset (all by default)."""
-    out = []
-    for name in list_leiria(root) if names is None else names:
-        raw = load_leiria(name, root)
-        scores = score_recording(raw, filters, with_timed=with_timed, skip_s=raw.score_from_s)
-        out.append(SequenceResult(name, raw.held_out, scores))
-    return out
-
-
-def mean_rmse_deg(results: Sequence[SequenceResult], filter_name: str) -> float:
-    """Mean over recordings of the per-recording inclination RMSE (the headline figure)."""
-    return float(np.mean([r.scores[filter_name].rmse_deg for r in results]))
-
-
-PX4_SKIP_S = 5.0
-"""PX4's EKF2 was converged when the log starts, the filters start from nothing: the first
-seconds are left out of the agreement figures."""
-
-
-def score_px4(
-    filters: Sequence[str] = ("ours", "vqf"), path: Path = PX4_ULOG, with_timed: bool = False
-) -> dict[str, Score]:
-    """Inclination *agreement* of each filter with PX4's EKF2 on the same flight (not accuracy).
-
-    The body frame is the flight controller's, so no mounting is fitted; every filter gets the
-    log resampled onto its median sample period (:func:`resample_uniform`), ``ours_timed`` the
-    samples as logged with their time stamps.
-    """
-    raw = load_px4_ulog(path)
-    rate = 1.0 / float(np.median(np.diff(raw.t_s)))
-    uni = resample_uniform(raw, rate)
-    out: dict[str, Score] = {}
-    runs: list[tuple[str, ImuRecording, FilterFn]] = [(n, uni, FILTERS[n]) for n in filters]
-    if with_timed:
-        runs.append(("ours_timed", raw, run_ours_timed))
-    for name, rec, fn in runs:
-        assert rec.reference_wxyz is not None
-        q, frame = fn(rec)
-        err = angle_between_rad(up_sensor_from_quat(q, frame),
-                                up_sensor_from_quat(rec.reference_wxyz, "ned"))
-        out[name] = Score.of(err[rec.t_s - rec.t_s[0] >= PX4_SKIP_S])
-    return out

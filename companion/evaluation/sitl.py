@@ -14,7 +14,7 @@ pieces are wired together in one deterministic loop, tick by tick:
 * :class:`~companion.drivers.imu_protocol.ImuDecoder` and
   :class:`~companion.drivers.gps_protocol.NmeaDecoder` (the drivers' own decoders) turn the bytes
   back into :class:`~companion.core.state.ImuSample` and :class:`~companion.core.state.GpsFix`;
-* :class:`EskfAsThread` feeds :class:`~companion.estimation.eskf.Eskf` the way
+* :class:`~companion.evaluation.sitl_estimator.EskfAsThread` feeds :class:`~companion.estimation.eskf.Eskf` the way
   :class:`~companion.estimation.thread.EstimatorThread` does (initial phase, moving-start
   detection, GPS standard deviations and latency, horizon weighting), with the thread's own
   parameter defaults; ``tests/test_estimation_sitl.py`` checks it against the real thread
@@ -22,13 +22,16 @@ pieces are wired together in one deterministic loop, tick by tick:
 * VQF (6-D, defaults) and Madgwick (``ahrs``, default gain, IMU only) run on the same decoded
   samples.
 
+This module records the flight (:func:`record_flight`); the estimator runs as the thread runs
+it in :mod:`companion.evaluation.sitl_estimator`, the IMU-only references through
+:mod:`companion.estimation.imu_filters`, the errors are scored in
+:mod:`companion.evaluation.sitl_scoring`, and :mod:`companion.evaluation.sitl_benchmark` does
+all of it for one benchmark job.
+
 Errors are computed against the truth at every IMU sample. Frames: the truth and the estimator
 share the NED frame anchored at the flight model's start point (SITL sets the runtime's home to
 it). VQF and Madgwick use a z-up earth frame with an arbitrary heading: only their inclination
 (the angle between the estimated and true vertical, seen from the body) is scored.
-
-Size: recording a flight, running each filter the way its thread does and scoring it are
-one pipeline; its stages are separate functions.
 """
 
 from __future__ import annotations
@@ -36,8 +39,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import time
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,20 +50,11 @@ from companion.core.state import GpsFix, HorizonMeasurement, ImuSample
 from companion.drivers.gps import solution_to_fix
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder, ImuFast
-from companion.estimation.attitude import estimate_attitude
-from companion.estimation.calibration import GyroCalibration, calibration_from_row
-from companion.estimation.fusion import EstimatorCore, board_to_body
+from companion.estimation.fusion import board_to_body
 from companion.estimation.quat import (
     FloatArray,
-    heading_error_rad,
-    inclination_error_rad,
-    quat_conjugate,
     quat_from_euler,
-    quat_multiply,
-    quat_to_rotmat,
-    quat_to_rotvec,
 )
-from companion.estimation.thread import estimator_param_defaults
 from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
 from companion.sim.profiles import (
@@ -76,48 +68,18 @@ from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
 
 log = logging.getLogger(__name__)
 
-__all__ = [
-    "EskfAsThread",
-    "EskfOptions",
-    "EskfRun",
-    "FilterErrors",
-    "FlightSpec",
-    "OutageGrowth",
-    "RunResult",
-    "SitlEvalError",
-    "SitlRecording",
-    "estimator_param_defaults",
-    "evaluate",
-    "filter_errors",
-    "outage_growth",
-    "record_flight",
-    "run_attitude",
-    "run_eskf",
-    "run_madgwick",
-    "run_vqf",
-    "steady_turn_mask",
-]
-
 IMU_RATE_HZ = 100
-IMU_ONLY_FILTERS = ("attitude", "vqf", "madgwick")
-"""IMU-only references: the project's `estimate_attitude`, VQF 6-D and Madgwick, all defaults."""
 IMU_DT_S = 1.0 / IMU_RATE_HZ
 GPS_EVERY = 10
 """IMU ticks per GPS epoch (10 Hz), as in the SITL world."""
 PILOT_EVERY = 2
 """IMU ticks per servo-board frame (50 Hz): how often the pilot moves the sticks."""
-TEMPERATURE_EVERY = 100
-"""IMU ticks between temperature readings (the IMU's slow block comes once a second)."""
 CAMERA_LATENCY_S = 0.1
 """Frame time to a horizon fix reaching the estimator: detection on the ground and both links
 (assumed; see docs/horizon.md)."""
 GPS_IDLE_MS = 20
 """The GPS driver's default hand-off-on-silence time (GPS_IDLE_MS)."""
 START_UTC_S = 12 * 3600.0
-NEES_EVERY = 10
-"""IMU ticks between NEES samples (10 Hz is plenty for a slowly varying statistic)."""
-STEADY_TURN_BANK_RAD = math.radians(20.0)
-STEADY_TURN_HOLD_S = 2.0
 
 BoolArray = NDArray[np.bool_]
 
@@ -463,505 +425,4 @@ def record_flight(spec: FlightSpec) -> SitlRecording:
         level_trim={k.removeprefix("EST_"): v for k, v in level_cal.params().items()}
         if level_cal is not None else {},
         level_calibration=level_cal.metadata() if level_cal is not None else None,
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# the project's estimator, fed as the estimator thread feeds it
-
-
-class EskfAsThread(EstimatorCore):
-    """:class:`EstimatorCore`, the code the estimator thread runs, with the thread's defaults.
-
-    ``params`` overrides thread parameters by suffix (unknown names are refused);
-    ``eskf_kwargs`` are added to the keyword arguments given to :class:`Eskf` (a tuning
-    experiment, not a thread feature). :meth:`cycle` is one thread cycle.
-    """
-
-    def __init__(
-        self,
-        home_lla: tuple[float, float, float] | None,
-        *,
-        params: Mapping[str, float] | None = None,
-        eskf_kwargs: Mapping[str, float] | None = None,
-    ) -> None:
-        defaults = estimator_param_defaults()
-        given = dict(params or {})
-        unknown = sorted(set(given) - set(defaults))
-        if unknown:
-            raise ValueError(
-                f"EskfAsThread: unknown estimator parameter(s) {unknown}; known: {sorted(defaults)}"
-            )
-        super().__init__({**defaults, **given}, home_lla, eskf_kwargs=eskf_kwargs)
-
-
-@dataclass(frozen=True)
-class EskfOptions:
-    """One way of running the project's estimator on a recording."""
-
-    horizon: bool = False
-    """Deliver the recording's horizon fixes to the estimator."""
-    gps_outage_s: tuple[float, float] | None = None
-    """GPS fixes handed off within [start, end) seconds are withheld (the receiver lost them)."""
-    params: Mapping[str, float] = field(default_factory=dict)
-    eskf_kwargs: Mapping[str, float] = field(default_factory=dict)
-    check_pd_every: int = 1
-    """IMU ticks between explicit Cholesky checks of the covariance (1: every sample)."""
-    heading_std_rad: float = 0.0
-    """With each GPS fix, also fuse a heading fix of the airframe: the true heading plus this
-    much white noise (0: none). Stands for a heading sensor the simulated aircraft does not
-    carry (a dual-antenna receiver, a calibrated magnetometer): what one would buy."""
-    heading_bias_rad: float = 0.0
-    """A constant error of those heading fixes (a magnetometer's declination or interference
-    error, a dual-antenna baseline's mounting error), told to nobody."""
-    measure_cpu: bool = False
-    """Also take the thread CPU time of every step (``step_cpu_us``); the clock read costs
-    tens of microseconds here, so only the timing study asks for it."""
-
-
-@dataclass
-class EskfRun:
-    """Per-tick output of one estimator run (NaN before the filter started)."""
-
-    quat: FloatArray
-    pos_m: FloatArray
-    vel_m_s: FloatArray
-    gyro_bias_rad_s: FloatArray
-    accel_bias_m_s2: FloatArray
-    step_us: NDArray[np.float32]
-    """Wall time of each cycle: predict, any updates and the state snapshot the thread
-    publishes (NaN before the start)."""
-    filter_us: NDArray[np.float32]
-    """The same without the snapshot: the filter's own predict and updates."""
-    step_cpu_us: NDArray[np.float32]
-    """CPU time of this thread for the same work as ``step_us`` (NaN unless measured): on a
-    shared machine the wall time also counts the time the scheduler gave to other processes."""
-    update_tick: BoolArray
-    """Ticks in which a GPS fix was fused (or tried)."""
-    nees_t_s: FloatArray
-    nees: FloatArray
-    """Normalised estimation error squared over all 15 error states, every NEES_EVERY ticks."""
-    nees_blocks: FloatArray
-    """NEES of each 3-state block alone (position, velocity, attitude, gyro bias, accel bias)."""
-    start_tick: int
-    faults: int
-    fault_reasons: list[str]
-    pd_checks: int
-    pd_failures: int
-    non_finite: int
-    """Ticks with a non-finite state value (should stay 0)."""
-    exceptions: int
-    """Exceptions out of the filter: each would have cost the thread a restart (should stay 0)."""
-    gps_accepted: int
-    gps_rejected: int
-    horizon_used: int
-    moving_start: bool
-    gyro_matrix: FloatArray = field(default_factory=lambda: np.zeros((0, 9)))
-    """The estimated gyro matrix error ``M`` (row-major) per tick, NaN before the start; once
-    a second (every ``GYRO_MATRIX_EVERY`` ticks) after :func:`evaluate` compacts the run."""
-    learnt: GyroCalibration | None = None
-    """What the filter had learnt of the gyro at the end (None if it never ran): what
-    ``companion estimation calibration`` would hand to the next flight."""
-
-
-HEADING_SEED_OFFSET = 7919
-"""The heading fixes' noise has its own stream, seeded from the flight's seed plus this."""
-GYRO_MATRIX_EVERY = 100
-"""Ticks between the gyro-matrix estimates a compacted run keeps (1 s at 100 Hz)."""
-
-
-def _no_clock() -> int:
-    return 0
-
-
-def _pd(p: FloatArray, yaw_aligned: bool) -> bool:
-    sub = p if yaw_aligned else np.delete(np.delete(p, 8, axis=0), 8, axis=1)
-    try:
-        np.linalg.cholesky(sub)
-    except np.linalg.LinAlgError:
-        return False
-    return True
-
-
-def _error_state(rec: SitlRecording, k: int, st_q: FloatArray, pos: FloatArray, vel: FloatArray,
-                 bg: FloatArray, ba: FloatArray) -> FloatArray:
-    """True minus estimated error state in the ESKF's convention (q_true = exp(dtheta) * q)."""
-    dq = quat_multiply(rec.quat_true[k], quat_conjugate(st_q))
-    return np.concatenate((rec.pos_true_m[k] - pos, rec.vel_true_m_s[k] - vel,
-                           quat_to_rotvec(dq), rec.gyro_bias_true_rad_s[k] - bg,
-                           rec.accel_bias_true_m_s2[k] - ba))
-
-
-def run_eskf(rec: SitlRecording, options: EskfOptions | None = None) -> EskfRun:
-    """Run the project's estimator over a recording, as the estimator thread would."""
-    opts = options or EskfOptions()
-    # the trims the flight's level calibration set, unless the options name their own
-    est = EskfAsThread(rec.home_lla, params={**rec.level_trim, **opts.params},
-                       eskf_kwargs=opts.eskf_kwargs)
-    n = rec.ticks
-    quat = np.full((n, 4), np.nan)
-    pos = np.full((n, 3), np.nan)
-    vel = np.full((n, 3), np.nan)
-    bg = np.full((n, 3), np.nan)
-    ba = np.full((n, 3), np.nan)
-    gm = np.full((n, 9), np.nan)
-    step_us = np.full(n, np.nan, dtype=np.float32)
-    filter_us = np.full(n, np.nan, dtype=np.float32)
-    step_cpu_us = np.full(n, np.nan, dtype=np.float32)
-    update_tick = np.zeros(n, dtype=bool)
-    nees_t: list[float] = []
-    nees: list[float] = []
-    blocks: list[FloatArray] = []
-    start = -1
-    pd_checks = pd_failures = non_finite = exceptions = 0
-    outage = opts.gps_outage_s
-    every = max(1, int(opts.check_pd_every))
-    perf = time.perf_counter_ns
-    cpu = time.thread_time_ns if opts.measure_cpu else _no_clock
-    heading_rng = np.random.default_rng(rec.spec.seed + HEADING_SEED_OFFSET)
-    for k in range(n):
-        sample = rec.imu[k]
-        fix = rec.gps.get(k)
-        t = float(rec.t_s[k])
-        if fix is not None and outage is not None and outage[0] <= t < outage[1]:
-            fix = None
-        hzn = rec.horizon.get(k) if opts.horizon else None
-        samples = [sample] if sample is not None else []
-        c0 = cpu()
-        t0 = perf()
-        try:
-            if k % TEMPERATURE_EVERY == 0 and len(rec.imu_temperature_c) > k:
-                # the slow block's temperature, once a second at its 0.01 C resolution
-                est.set_temperature(round(float(rec.imu_temperature_c[k]), 2))
-            running = est.cycle(samples, fix, hzn)
-            if opts.heading_std_rad > 0.0 and fix is not None and est.filter is not None:
-                est.filter.update_heading(
-                    float(rec.euler_true_rad[k, 2]) + opts.heading_bias_rad
-                    + opts.heading_std_rad * float(heading_rng.standard_normal()),
-                    opts.heading_std_rad)
-            t1 = perf()
-            f = est.filter
-            st = f.state() if f is not None and running else None
-        except Exception:  # the thread would crash and be restarted: count, never hide
-            log.exception("estimator raised at t=%.2f s", t)
-            exceptions += 1
-            continue
-        t2 = perf()
-        c2 = cpu()
-        if st is None or f is None:
-            continue
-        if start < 0:
-            start = k
-        else:
-            step_us[k] = (t2 - t0) / 1e3
-            filter_us[k] = (t1 - t0) / 1e3
-            if opts.measure_cpu:
-                step_cpu_us[k] = (c2 - c0) / 1e3
-        update_tick[k] = fix is not None
-        quat[k], pos[k], vel[k] = st.quaternion, st.pos_ned_m, st.vel_ned_m_s
-        bg[k], ba[k] = st.gyro_bias_rad_s, st.accel_bias_m_s2
-        gm[k] = st.gyro_matrix.reshape(-1)
-        if not (np.isfinite(quat[k]).all() and np.isfinite(pos[k]).all()
-                and np.isfinite(vel[k]).all()):
-            non_finite += 1
-        if k % every == 0 or fix is not None:
-            pd_checks += 1
-            # the 15 navigation states (marginal): the GPS delay has no truth to score here
-            p = f.covariance[:15, :15]
-            if not (np.isfinite(p).all() and _pd(p, st.yaw_aligned)):
-                pd_failures += 1
-                continue
-            if k % NEES_EVERY == 0 and st.yaw_aligned:
-                e = _error_state(rec, k, st.quaternion, st.pos_ned_m, st.vel_ned_m_s,
-                                 st.gyro_bias_rad_s, st.accel_bias_m_s2)
-                nees_t.append(t)
-                nees.append(float(e @ np.linalg.solve(p, e)))
-                blocks.append(np.array([
-                    float(e[i:i + 3] @ np.linalg.solve(p[i:i + 3, i:i + 3], e[i:i + 3]))
-                    for i in range(0, 15, 3)]))
-    f = est.filter
-    return EskfRun(
-        quat=quat, pos_m=pos, vel_m_s=vel, gyro_bias_rad_s=bg, accel_bias_m_s2=ba,
-        step_us=step_us, filter_us=filter_us,
-        step_cpu_us=step_cpu_us, update_tick=update_tick,
-        nees_t_s=np.array(nees_t), nees=np.array(nees),
-        nees_blocks=np.array(blocks).reshape(-1, 5),
-        start_tick=start,
-        faults=f.faults if f is not None else 0,
-        fault_reasons=[fl.reason for fl in f.fault_log] if f is not None else [],
-        pd_checks=pd_checks, pd_failures=pd_failures, non_finite=non_finite,
-        exceptions=exceptions, gps_accepted=est.gps_accepted, gps_rejected=est.gps_rejected,
-        horizon_used=est.horizon_used, moving_start=est.moving_start, gyro_matrix=gm,
-        learnt=(calibration_from_row([v for part in f.gyro_calibration() for v in part],
-                                     float(rec.t_s[-1] - rec.t_s[max(start, 0)]))
-                if f is not None and start >= 0 else None),
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# IMU-only references
-
-
-def _first_level_quat_zup(accel: FloatArray) -> FloatArray:
-    """A z-up-frame quaternion that makes the first specific force read as 'up'."""
-    a = accel[0] / np.linalg.norm(accel[0])
-    roll = math.atan2(-a[1], -a[2])
-    pitch = math.atan2(a[0], math.hypot(a[1], a[2]))
-    q_ned = quat_from_euler(roll, pitch, 0.0)
-    # body -> NED, then NED -> (north, west, up): a half turn about north
-    return np.asarray(quat_multiply((0.0, 1.0, 0.0, 0.0), q_ned))
-
-
-def run_attitude(rec: SitlRecording) -> FloatArray:
-    """The project's IMU-only filter (`estimate_attitude`, defaults) on the decoded samples; NED.
-
-    It sees exactly what VQF and Madgwick see (gyro and accelerometer, nothing else), so its row
-    is the like-for-like comparison; the GPS/INS estimator also uses GPS and knows its latency."""
-    gyro, accel = rec.imu_arrays()
-    return estimate_attitude(gyro, accel, float(IMU_RATE_HZ))
-
-
-def run_vqf(rec: SitlRecording) -> FloatArray:
-    """VQF, 6-D, default parameters, on the decoded samples: (N, 4) quaternions, z-up frame."""
-    from vqf import VQF
-
-    gyro, accel = rec.imu_arrays()
-    filt = VQF(IMU_DT_S)
-    out = filt.updateBatch(np.ascontiguousarray(gyro), np.ascontiguousarray(accel))
-    return np.asarray(out["quat6D"], dtype=float)
-
-
-def run_madgwick(rec: SitlRecording) -> FloatArray:
-    """Madgwick (``ahrs``), IMU only, default gain, on the decoded samples; z-up frame."""
-    from ahrs.filters import Madgwick
-
-    gyro, accel = rec.imu_arrays()
-    filt = Madgwick(frequency=float(IMU_RATE_HZ))
-    q = _first_level_quat_zup(accel)
-    out = np.empty((rec.ticks, 4))
-    for k in range(rec.ticks):
-        q = filt.updateIMU(q, gyro[k], accel[k])
-        out[k] = q
-    return out
-
-
-def inclination_error_zup_rad(q_zup: FloatArray, q_true_ned: FloatArray) -> FloatArray:
-    """Tilt error of a z-up-frame estimate against the NED truth (heading-free)."""
-    up_est = quat_to_rotmat(q_zup)[..., 2, :]
-    down_true = quat_to_rotmat(q_true_ned)[..., 2, :]
-    cos_a = np.sum(-up_est * down_true, axis=-1)
-    sin_a = np.linalg.norm(np.cross(-up_est, down_true), axis=-1)
-    return np.arctan2(sin_a, cos_a)
-
-
-# ---------------------------------------------------------------------------------------------
-# errors
-
-
-@dataclass
-class FilterErrors:
-    """Per-tick errors of one filter against the truth (NaN where it had no estimate)."""
-
-    inclination_rad: FloatArray
-    heading_rad: FloatArray | None = None
-    vel_m_s: FloatArray | None = None
-    """Norm of the 3-D velocity error."""
-    hpos_m: FloatArray | None = None
-    """Norm of the horizontal position error."""
-    non_finite: int = 0
-
-
-def filter_errors(rec: SitlRecording, quat: FloatArray, *, zup: bool = False,
-                  run: EskfRun | None = None) -> FilterErrors:
-    """Errors of an estimate against the recording's truth; ``run`` adds heading/vel/pos."""
-    finite = np.isfinite(quat).all(axis=1)
-    incl = np.full(rec.ticks, np.nan)
-    if zup:
-        incl[finite] = inclination_error_zup_rad(quat[finite], rec.quat_true[finite])
-        started = np.ones(rec.ticks, dtype=bool)
-    else:
-        incl[finite] = inclination_error_rad(quat[finite], rec.quat_true[finite])
-        started = np.arange(rec.ticks) >= (run.start_tick if run is not None and
-                                          run.start_tick >= 0 else rec.ticks)
-    non_finite = int(np.count_nonzero(started & ~finite))
-    if run is None:
-        return FilterErrors(incl, non_finite=non_finite)
-    heading = np.full(rec.ticks, np.nan)
-    heading[finite] = heading_error_rad(quat[finite], rec.quat_true[finite])
-    vel = np.linalg.norm(run.vel_m_s - rec.vel_true_m_s, axis=1)
-    hpos = np.linalg.norm(run.pos_m[:, :2] - rec.pos_true_m[:, :2], axis=1)
-    return FilterErrors(incl, heading, vel, hpos, non_finite)
-
-
-def steady_turn_mask(rec: SitlRecording, bank_rad: float = STEADY_TURN_BANK_RAD,
-                     hold_s: float = STEADY_TURN_HOLD_S) -> BoolArray:
-    """Ticks where the true bank has stayed beyond ``bank_rad`` for the last ``hold_s``."""
-    banked = np.abs(rec.euler_true_rad[:, 0]) > bank_rad
-    window = max(1, int(round(hold_s * IMU_RATE_HZ)))
-    unbanked = np.concatenate(([0], np.cumsum(~banked)))
-    k = np.arange(rec.ticks)
-    lo = np.maximum(k + 1 - window, 0)
-    held = (unbanked[k + 1] - unbanked[lo]) == 0
-    return banked & held & (k + 1 >= window)
-
-
-@dataclass(frozen=True)
-class OutageGrowth:
-    """How far the estimate drifted during a GPS outage (errors at its end and worst within)."""
-
-    before_incl_deg: float
-    end_incl_deg: float
-    max_incl_deg: float
-    before_heading_deg: float
-    end_heading_deg: float
-    before_vel_m_s: float
-    end_vel_m_s: float
-    before_hpos_m: float
-    end_hpos_m: float
-    max_hpos_m: float
-    recovered_hpos_m: float
-    """Horizontal position error 10 s after the outage ended."""
-
-
-def outage_growth(rec: SitlRecording, err: FilterErrors, window_s: tuple[float, float],
-                  before_s: float = 5.0) -> OutageGrowth:
-    """Errors just before (mean over ``before_s``), at the end of and within an outage."""
-    if err.heading_rad is None or err.vel_m_s is None or err.hpos_m is None:
-        raise ValueError("outage_growth needs the errors of a navigation filter (run=...)")
-    t = rec.t_s
-    t0, t1 = window_s
-    before = (t >= t0 - before_s) & (t < t0)
-    inside = (t >= t0) & (t < t1)
-    if not before.any() or not inside.any():
-        raise ValueError(f"outage window {window_s} is not inside the recording (0..{t[-1]:.1f} s)")
-    end = int(np.nonzero(inside)[0][-1])
-    after = min(int(np.searchsorted(t, t1 + 10.0)), len(t) - 1)
-    deg = math.degrees
-
-    def mean(x: FloatArray) -> float:
-        return float(np.nanmean(np.abs(x[before])))
-
-    return OutageGrowth(
-        before_incl_deg=deg(mean(err.inclination_rad)),
-        end_incl_deg=deg(float(err.inclination_rad[end])),
-        max_incl_deg=deg(float(np.nanmax(err.inclination_rad[inside]))),
-        before_heading_deg=deg(mean(err.heading_rad)),
-        end_heading_deg=deg(abs(float(err.heading_rad[end]))),
-        before_vel_m_s=mean(err.vel_m_s),
-        end_vel_m_s=float(err.vel_m_s[end]),
-        before_hpos_m=mean(err.hpos_m),
-        end_hpos_m=float(err.hpos_m[end]),
-        max_hpos_m=float(np.nanmax(err.hpos_m[inside])),
-        recovered_hpos_m=float(err.hpos_m[after]),
-    )
-
-
-# ---------------------------------------------------------------------------------------------
-# one benchmark job
-
-
-@dataclass
-class RunResult:
-    """Everything a benchmark needs from one recording, compact enough to pass between processes.
-
-    Error series are float32 (the pooled statistics do not need more) and keyed by filter name:
-    ``vqf`` and ``madgwick`` for the IMU-only references, the :func:`evaluate` variant names for
-    the project's estimator.
-    """
-
-    spec: FlightSpec
-    trim_method: str
-    t_s: NDArray[np.float32]
-    bank_rad: NDArray[np.float32]
-    steady_turn: BoolArray
-    gps_error_h_m: NDArray[np.float32]
-    """(M, 2): validity time (s) and horizontal error (m) of every GPS fix, the floor under any
-    GPS/INS position error (the simulated receiver's error wanders like a real one's)."""
-    errors: dict[str, FilterErrors]
-    eskf: dict[str, EskfRun]
-    outage: dict[str, OutageGrowth]
-    elapsed_s: float
-    camera: dict[str, Any] | None = None
-    """The camera's figures when the horizon fixes came from the detector."""
-    gyro_matrix_true: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
-    """The simulated gyro's matrix error in the estimator's axes
-    (:attr:`SitlRecording.gyro_matrix_trimmed`)."""
-
-
-def _compact(run: EskfRun) -> EskfRun:
-    """Drop the per-tick state arrays (errors keep what matters) before pickling."""
-    empty = np.zeros((0, 3))
-    return EskfRun(
-        quat=np.zeros((0, 4)), pos_m=empty, vel_m_s=empty, gyro_bias_rad_s=empty,
-        accel_bias_m_s2=empty, step_us=run.step_us, filter_us=run.filter_us,
-        step_cpu_us=run.step_cpu_us, update_tick=run.update_tick,
-        nees_t_s=run.nees_t_s, nees=run.nees, nees_blocks=run.nees_blocks,
-        start_tick=run.start_tick, faults=run.faults, fault_reasons=run.fault_reasons,
-        pd_checks=run.pd_checks, pd_failures=run.pd_failures, non_finite=run.non_finite,
-        exceptions=run.exceptions, gps_accepted=run.gps_accepted, gps_rejected=run.gps_rejected,
-        horizon_used=run.horizon_used, moving_start=run.moving_start,
-        gyro_matrix=run.gyro_matrix[::GYRO_MATRIX_EVERY].copy(), learnt=run.learnt)
-
-
-def _f32(errors: FilterErrors) -> FilterErrors:
-    def c(x: FloatArray | None) -> FloatArray | None:
-        return None if x is None else x.astype(np.float32)  # type: ignore[return-value]
-
-    return FilterErrors(c(errors.inclination_rad), c(errors.heading_rad),  # type: ignore[arg-type]
-                        c(errors.vel_m_s), c(errors.hpos_m), errors.non_finite)
-
-
-def evaluate(
-    spec: FlightSpec,
-    variants: Mapping[str, EskfOptions] | None = None,
-    imu_only: Sequence[str] = IMU_ONLY_FILTERS,
-    compact: bool = True,
-) -> RunResult:
-    """Fly ``spec`` once and score every estimator variant and IMU-only reference on it.
-
-    ``variants`` maps a name to :class:`EskfOptions` (default: ``{"eskf": EskfOptions()}``);
-    a variant with a GPS outage also gets its :class:`OutageGrowth`. ``compact`` drops the
-    per-tick estimates and keeps the error series (what a multi-process benchmark sends back).
-    """
-    t0 = time.perf_counter()
-    chosen = dict(variants) if variants is not None else {"eskf": EskfOptions()}
-    unknown = sorted(set(imu_only) - set(IMU_ONLY_FILTERS))
-    if unknown:
-        raise ValueError(f"evaluate: unknown IMU-only filter(s) {unknown}; "
-                         f"use {', '.join(IMU_ONLY_FILTERS)}")
-    rec = record_flight(spec)
-    errors: dict[str, FilterErrors] = {}
-    runs: dict[str, EskfRun] = {}
-    outage: dict[str, OutageGrowth] = {}
-    for name, opts in chosen.items():
-        run = run_eskf(rec, opts)
-        err = filter_errors(rec, run.quat, run=run)
-        if opts.gps_outage_s is not None:
-            outage[name] = outage_growth(rec, err, opts.gps_outage_s)
-        errors[name] = _f32(err) if compact else err
-        runs[name] = _compact(run) if compact else run
-    if "attitude" in imu_only:
-        err = filter_errors(rec, run_attitude(rec))
-        errors["attitude"] = _f32(err) if compact else err
-    if "vqf" in imu_only:
-        err = filter_errors(rec, run_vqf(rec), zup=True)
-        errors["vqf"] = _f32(err) if compact else err
-    if "madgwick" in imu_only:
-        err = filter_errors(rec, run_madgwick(rec), zup=True)
-        errors["madgwick"] = _f32(err) if compact else err
-    gps_h = np.linalg.norm(rec.gps_error_ned_m[:, :2], axis=1)
-    return RunResult(
-        spec=spec,
-        trim_method=rec.trim_method,
-        t_s=rec.t_s.astype(np.float32),
-        bank_rad=rec.euler_true_rad[:, 0].astype(np.float32),
-        steady_turn=steady_turn_mask(rec),
-        gps_error_h_m=np.concatenate((rec.t_s[GPS_EVERY - 1::GPS_EVERY][:len(gps_h)][:, None],
-                                      gps_h[:, None]), axis=1).astype(np.float32),
-        errors=errors,
-        eskf=runs,
-        outage=outage,
-        elapsed_s=time.perf_counter() - t0,
-        camera=rec.camera,
-        gyro_matrix_true=rec.gyro_matrix_trimmed,
     )

@@ -70,9 +70,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     try:
         options = ReplayOptions(estimator=args.estimator, skip_s=args.skip_s,
                                 params=_params(args.param))
-        from companion.estimation.replay.runner import estimator_params
+        from companion.estimation.replay.runner import replay_params
 
-        estimator_params(options.params)
+        replay_params(options.params)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_LOG

@@ -3,7 +3,8 @@
 The estimator is the flight's: `EstimatorCore` (GPS/INS ESKF, the estimator thread's parameter
 defaults, sample periods from the samples' time stamps) when the log has usable GPS fixes, else
 the IMU-only `AttitudeFilter`. Samples are handed over in cycles of `output_period_s`, as the
-thread drains its IMU queue, with the newest GPS fix of the cycle.
+thread drains its IMU queue, with the newest GPS fix of the cycle and the IMU temperature at
+most once a second, through the thread's own `EstimatorCore.cycle`.
 
 Logs are not clean, so every timeline is cleaned first and what was done is reported, never
 raised: repeated time stamps (duplicated samples) and small steps back (out of order) are
@@ -171,20 +172,14 @@ class ReplayResult:
     run_time_s: float = 0.0
 
 
-def estimator_params(overrides: dict[str, float] | None = None) -> dict[str, float]:
-    """The estimator thread's parameter defaults by suffix (read from its declaration, so a
-    replay runs what flies), with `overrides` applied; unknown names are refused."""
-    from companion.estimation.thread import estimator_param_defaults
+def replay_params(overrides: dict[str, float] | None = None) -> dict[str, float]:
+    """The estimator's parameter defaults by suffix (a replay runs what flies) with
+    `overrides` by suffix or by the vehicle's name (``EST_GPS_LAG``); unknown names are
+    refused (ValueError)."""
+    from companion.estimation.params import estimator_param_defaults
+    from companion.vehicle import VEHICLE
 
-    prefix = "EST"
-    params = estimator_param_defaults(prefix)
-    for name, value in (overrides or {}).items():
-        key = name.upper().removeprefix(prefix + "_")
-        if key not in params:
-            raise ValueError(f"unknown estimator parameter {name!r} "
-                             f"(known: {', '.join(sorted(params))})")
-        params[key] = float(value)
-    return params
+    return estimator_param_defaults(VEHICLE["estimator"].task.param_prefix, overrides)
 
 
 def _gps_fixes(gps: GpsSeries, keep: IntArray, t_us: IntArray) -> list[Any]:
@@ -263,16 +258,20 @@ def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[A
         while gi < len(fixes) and fixes[gi].t_ns <= tk * 1000:
             fix = fixes[gi]
             gi += 1
-        running = core.cycle(batch, fix)
+        # the temperatures logged up to now, at most once a second: consumed only once the
+        # filter runs (a cycle before its start leaves them for the first one after)
+        temp_c = None
+        tj = ti
+        if ti < len(temps) and tk >= next_temp_us:
+            while tj < len(temps) and temps[tj][0] <= tk:
+                temp_c = temps[tj][1]
+                tj += 1
+        running = core.cycle(batch, fix, temperature_c=temp_c)
         batch = []
         batch_t0 = tk
-        if ti < len(temps) and tk >= next_temp_us and core.filter is not None:
-            newest = None
-            while ti < len(temps) and temps[ti][0] <= tk:
-                newest = temps[ti][1]
-                ti += 1
-            if newest is not None:
-                core.set_temperature(newest)
+        if core.filter is not None:
+            ti = tj
+            if temp_c is not None:
                 next_temp_us = tk + 1_000_000
         if not running or core.filter is None:
             if core.init_failed:
@@ -399,7 +398,7 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
     opts = options or ReplayOptions()
     if opts.estimator not in ("auto", "eskf", "attitude"):
         raise ValueError(f"estimator must be auto, eskf or attitude, got {opts.estimator!r}")
-    params = estimator_params(opts.params)
+    params = replay_params(opts.params)
     started = time.perf_counter()
     notes = list(flight.notes)
     imu = flight.imu
