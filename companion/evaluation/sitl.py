@@ -8,7 +8,7 @@ pieces are wired together in one deterministic loop, tick by tick:
 * :class:`~companion.sim.flight.FlightModel` flies, steered by the scripted
   :class:`~companion.sim.scenarios.Pilot` through :func:`surfaces_from_channels` at 50 Hz,
   after the same settle phase with centred sticks that ``companion.sim.world`` uses;
-* :class:`~companion.sim.devices.ImuSim` and :class:`~companion.sim.devices.GpsSim` turn the
+* :class:`~companion.sim.imu_sim.ImuSim` and :class:`~companion.sim.gps_sim.GpsSim` turn the
   truth into device bytes with their noise, bias and GPS error models; GPS epochs reach the
   decoder ``gps_latency_s`` late, as the world delivers them;
 * :class:`~companion.drivers.imu_protocol.ImuDecoder` and
@@ -63,8 +63,10 @@ from companion.estimation.quat import (
     quat_to_rotvec,
 )
 from companion.estimation.thread import estimator_param_defaults
-from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
 from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
+from companion.sim.gps_sim import GpsSim, GpsSimConfig
+from companion.sim.imu_model import ImuSimConfig
+from companion.sim.imu_sim import ImuSim
 from companion.sim.profiles import (
     DEFAULT_GPS_PROFILE,
     DEFAULT_IMU_PROFILE,
