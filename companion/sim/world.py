@@ -39,14 +39,15 @@ import numpy as np
 from companion.core.clock import Clock
 from companion.sim.byte_faults import FaultInjector
 from companion.sim.faults import FaultPlan, Vanish
-from companion.sim.flight import FlightModel, FlightModelError, TruthState
+from companion.sim.flight import FlightModel, FlightModelError
 from companion.sim.gps_sim import GpsSim
 from companion.sim.imu_sim import ImuSim
+from companion.sim.pilot import Pilot, Surfaces, surfaces_from_channels
 from companion.sim.plugins import DeviceSimulator, build_simulator
 from companion.sim.ports import DEVICES, Pty
 from companion.sim.profiles import resolve_sensors
-from companion.sim.scenarios import Pilot, Surfaces, surfaces_from_channels
 from companion.sim.servo_sim import ServoBoardSim
+from companion.sim.truth import TruthState
 
 if TYPE_CHECKING:
     from companion.sim.camera import CameraResult, WorldCamera
