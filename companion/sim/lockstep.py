@@ -223,7 +223,7 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             on_runtime(rt)
         # no ground links here: the camera's fixes go into the slot the legacy adapter writes,
         # and each frame is detected inside the world's tick (simulated time stands still)
-        from companion.sim.camera import SlotLink
+        from companion.sim.world_camera import SlotLink
 
         world.attach_camera(SlotLink(rt.ctx.state.horizon), threaded=False)
 

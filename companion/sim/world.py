@@ -50,7 +50,8 @@ from companion.sim.servo_sim import ServoBoardSim
 from companion.sim.truth import TruthState
 
 if TYPE_CHECKING:
-    from companion.sim.camera import CameraResult, WorldCamera
+    from companion.sim.camera import CameraResult
+    from companion.sim.world_camera import WorldCamera
 
 log = logging.getLogger(__name__)
 
@@ -175,12 +176,8 @@ class World:
         Its generator is seeded from the world's seed alone, so adding a camera changes no
         other sensor's draws."""
         from companion.sim.camera import LATENCY_S as CAMERA_LATENCY_S
-        from companion.sim.camera import (
-            LegacyHorizonLink,
-            SimCamera,
-            WorldCamera,
-            camera_seed,
-        )
+        from companion.sim.camera import SimCamera, camera_seed
+        from companion.sim.world_camera import LegacyHorizonLink, WorldCamera
 
         if self.opts.horizon_camera == "off":
             return
@@ -195,7 +192,7 @@ class World:
     def retarget_camera(self, dest: str) -> bool:
         """Point the camera's fixes at another `HOST:PORT` (the runtime was rebooted and bound
         a new legacy port); False when the camera does not send over UDP."""
-        from companion.sim.camera import LegacyHorizonLink
+        from companion.sim.world_camera import LegacyHorizonLink
 
         link = self.camera.link if self.camera is not None else None
         if not isinstance(link, LegacyHorizonLink):
