@@ -17,7 +17,8 @@ import numpy as np
 from companion.drivers.gps_protocol import NmeaDecoder
 from companion.drivers.imu_protocol import ImuDecoder
 from companion.drivers.servo_protocol import PilotDecoder, PilotFrame, encode_pilot
-from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim
+from companion.sim.gps_sim import GpsSim, GpsSimConfig
+from companion.sim.imu_sim import ImuSim
 
 
 def imu_units(count: int) -> list[bytes]:

@@ -89,7 +89,7 @@ def _producer_log(module: str, cls: str) -> _Log:
 
 def synthesise_flight(root: Path, minutes: float, seed: int = 1) -> Path:
     """A flight directory like `companion sim` leaves, flying a 400 m circle at 50 m/s."""
-    from companion.sim.world import TRUTH_COLUMNS
+    from companion.logs.truth import TRUTH_COLUMNS, TRUTH_FORMAT
 
     rng = np.random.default_rng(seed)
     d = root / "synthetic"
@@ -155,7 +155,7 @@ def synthesise_flight(root: Path, minutes: float, seed: int = 1) -> Path:
     est.marker(END, ns(dur))
 
     truth = _Log()
-    truth.define(1, ",".join(["%.6f"] * 15 + ["%.9lf", "%.9lf", "%.3f", "%.3f", "%.3lf"]), TRUTH_COLUMNS)
+    truth.define(1, TRUTH_FORMAT, TRUTH_COLUMNS)
     s = state(np.arange(0.0, dur, 0.01))
     truth.marker(BEGIN, T0_NS)
     for k, tk in enumerate(s["t"]):

@@ -5,7 +5,7 @@ cores, so the flight side must leave most of a core free. Three figures per airc
 
 - ``step``: ``FlightModel.step`` alone at the 100 Hz model rate (JSBSim plus our bookkeeping);
 - ``step+truth``: the same plus ``truth()`` every step, which SITL needs for the 100 Hz IMU;
-- ``+pilot``: the same plus the pilot at 50 Hz and the channel mapping (``scenarios.fly``).
+- ``+pilot``: the same plus the pilot at 50 Hz and the channel mapping (``pilot.fly``).
 
 Both wall-clock and process-CPU real-time factors are printed: on a shared machine the CPU
 figure is the one that says what the code costs.
@@ -19,8 +19,10 @@ import argparse
 import time
 from collections.abc import Callable
 
-from companion.sim.flight import AIRCRAFT, FlightModel
-from companion.sim.scenarios import SCENARIOS, Pilot, fly
+from companion.sim.aircraft import AIRCRAFT
+from companion.sim.flight import FlightModel
+from companion.sim.pilot import Pilot, fly
+from companion.sim.scenarios import SCENARIOS
 
 
 def _timed(work: Callable[[], None]) -> tuple[float, float]:

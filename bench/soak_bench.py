@@ -36,8 +36,7 @@ from faults_bench import SCALE, Flight, param_list_s, thread_of  # noqa: E402
 from mavflood import flood  # noqa: E402
 
 from companion.logs import read_log  # noqa: E402
-from companion.sim.thread_faults import parse_thread_fault  # noqa: E402
-from companion.sim.world import parse_fault, parse_vanish  # noqa: E402
+from companion.sim.faults import parse_fault, parse_thread_fault, parse_vanish  # noqa: E402
 
 
 def draw_plan(duration_s: float, rng: random.Random) -> tuple[list[str], list[float]]:

@@ -21,7 +21,9 @@ from companion.core.state import ControlOutput
 from companion.drivers.gps import GpsDriver
 from companion.drivers.imu import ImuDriver
 from companion.drivers.servo import ServoDriver
-from companion.sim.devices import GpsSim, ImuSim, ServoBoardSim
+from companion.sim.gps_sim import GpsSim
+from companion.sim.imu_sim import ImuSim
+from companion.sim.servo_sim import ServoBoardSim
 from companion.vehicle import VEHICLE, fill_device_defaults
 from companion.watchdog import EventKind, ManagedThread, RuntimeContext, ThreadManager
 

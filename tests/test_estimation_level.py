@@ -22,8 +22,8 @@ from companion.estimation.eskf import Eskf
 from companion.estimation.fusion import EstimatorCore
 from companion.estimation.level import LevelCalibrationError, level_trim
 from companion.estimation.thread import EstimatorThread
-from companion.sim.devices import ImuSim, ImuSimConfig
-from companion.sim.imu_model import rotation_matrix
+from companion.sim.imu_model import ImuSimConfig, rotation_matrix
+from companion.sim.imu_sim import ImuSim
 from companion.sim.profiles import imu_profile
 from companion.vehicle import VEHICLE
 from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager

@@ -11,11 +11,11 @@ import pytest
 from companion.core import state
 from companion.core.fastinit import fast_frozen
 from companion.drivers import gps_solution, imu_protocol, servo_protocol
-from companion.sim import flight
+from companion.sim import truth
 
 FAST_CLASSES = [
     state.ImuSample, state.ImuSlowSample, state.GpsFix, state.ServoState, state.EstimatorState,
-    state.ControlOutput, state.HorizonMeasurement, flight.TruthState, imu_protocol.ImuFast,
+    state.ControlOutput, state.HorizonMeasurement, truth.TruthState, imu_protocol.ImuFast,
     imu_protocol.ImuSlow, servo_protocol.ServoCommand, servo_protocol.PilotFrame,
     gps_solution.GpsSolution,
 ]

@@ -19,15 +19,8 @@ from conftest import free_udp_port
 
 from companion.core.clock import Clock
 from companion.core.params import ParamRegistry
-from companion.sim.camera import (
-    LegacyHorizonLink,
-    OfflineCameraFeed,
-    SimCamera,
-    SlotLink,
-    WorldCamera,
-    attach_camera,
-    horizon_measurements,
-)
+from companion.sim.camera import OfflineCameraFeed, SimCamera, horizon_measurements
+from companion.sim.world_camera import LegacyHorizonLink, SlotLink, WorldCamera, attach_camera
 from companion.watchdog import RuntimeContext, ThreadManager
 from horizon.camera import CameraModel
 from legacy_protocol import codec, messages

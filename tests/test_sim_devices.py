@@ -17,16 +17,12 @@ from companion.drivers.servo_protocol import (
     ServoCommand,
     encode_command,
 )
-from companion.sim.devices import (
-    FaultInjector,
-    FaultPlan,
-    GpsSim,
-    GpsSimConfig,
-    ImuSim,
-    ImuSimConfig,
-    ServoBoardConfig,
-    ServoBoardSim,
-)
+from companion.sim.byte_faults import FaultInjector
+from companion.sim.faults import FaultPlan
+from companion.sim.gps_sim import GpsSim, GpsSimConfig
+from companion.sim.imu_model import ImuSimConfig
+from companion.sim.imu_sim import ImuSim
+from companion.sim.servo_sim import ServoBoardConfig, ServoBoardSim
 
 RATES = (0.1, -0.05, 0.3)
 ACCEL = (0.5, -0.2, -9.81)
@@ -358,7 +354,7 @@ def test_sim_bytes_through_a_pseudo_terminal() -> None:
 
 
 def test_a_uart_at_the_right_rate_reads_the_bytes_unchanged() -> None:
-    from companion.sim.devices import uart_misread
+    from companion.sim.byte_faults import uart_misread
 
     data = bytes(range(256))
     assert uart_misread(data, 1.0) == data
@@ -369,7 +365,7 @@ def test_a_uart_at_the_right_rate_reads_the_bytes_unchanged() -> None:
 def test_a_wrong_baud_rate_yields_bytes_that_never_frame(ratio: float) -> None:
     """What a mismatched UART receives from a stream of good IMU frames: bytes keep coming
     (the driver can tell a wrong rate from a silent device) and no frame decodes."""
-    from companion.sim.devices import uart_misread
+    from companion.sim.byte_faults import uart_misread
 
     frames = imu_stream(ImuSim(rng(5)), 300)
     received = b"".join(uart_misread(f, ratio) for f in frames)
@@ -388,7 +384,7 @@ def test_a_flood_sends_every_chunk_n_times_only_inside_its_window() -> None:
 
 
 def test_device_fault_specs_parse_and_bad_ones_name_the_item() -> None:
-    from companion.sim.world import parse_fault, parse_vanish
+    from companion.sim.faults import parse_fault, parse_vanish
 
     dev, plan = parse_fault("gps:utcstep=30:-1,flood=5-8,floodx=3,wrongbaud=1-2,baudratio=0.5")
     assert dev == "gps" and plan.utc_step_s == ((30.0, -1.0),) and plan.flood_factor == 3

@@ -14,22 +14,17 @@ import pytest
 
 from companion.core.geo import NedFrame, ecef_to_geodetic, geodetic_to_ecef
 from companion.drivers.servo_protocol import AUTO_SWITCH_THRESHOLD_US
-from companion.sim.flight import (
-    AIRCRAFT,
-    DEFAULT_AIRCRAFT,
-    FlightModel,
-    FlightModelError,
-    TruthState,
-    resolve_aircraft,
-)
-from companion.sim.scenarios import (
+from companion.sim.aircraft import AIRCRAFT, DEFAULT_AIRCRAFT, resolve_aircraft
+from companion.sim.flight import FlightModel, FlightModelError
+from companion.sim.pilot import (
     CHANNEL_COUNT,
-    SCENARIOS,
     Pilot,
     channels_from_surfaces,
     fly,
     surfaces_from_channels,
 )
+from companion.sim.scenarios import SCENARIOS
+from companion.sim.truth import TruthState
 
 G = 9.80665
 START_ALT_M = 300.0

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from companion.sim.campaign import CampaignError, load_campaign
-from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
-from companion.sim.imu_model import dlpf_gain
+from companion.sim.gps_sim import GpsSim, GpsSimConfig
+from companion.sim.imu_model import ImuSimConfig, dlpf_gain
+from companion.sim.imu_sim import ImuSim
 from companion.sim.profiles import (
     DEG,
     GPS_PROFILES,

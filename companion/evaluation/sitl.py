@@ -6,9 +6,9 @@ a few times faster than real time and its timing depends on the machine's load. 
 pieces are wired together in one deterministic loop, tick by tick:
 
 * :class:`~companion.sim.flight.FlightModel` flies, steered by the scripted
-  :class:`~companion.sim.scenarios.Pilot` through :func:`surfaces_from_channels` at 50 Hz,
+  :class:`~companion.sim.pilot.Pilot` through :func:`surfaces_from_channels` at 50 Hz,
   after the same settle phase with centred sticks that ``companion.sim.world`` uses;
-* :class:`~companion.sim.devices.ImuSim` and :class:`~companion.sim.devices.GpsSim` turn the
+* :class:`~companion.sim.imu_sim.ImuSim` and :class:`~companion.sim.gps_sim.GpsSim` turn the
   truth into device bytes with their noise, bias and GPS error models; GPS epochs reach the
   decoder ``gps_latency_s`` late, as the world delivers them;
 * :class:`~companion.drivers.imu_protocol.ImuDecoder` and
@@ -55,8 +55,12 @@ from companion.estimation.quat import (
     FloatArray,
     quat_from_euler,
 )
-from companion.sim.devices import GpsSim, GpsSimConfig, ImuSim, ImuSimConfig
-from companion.sim.flight import AIRCRAFT, FlightModel, FlightModelError
+from companion.sim.aircraft import AIRCRAFT
+from companion.sim.flight import FlightModel, FlightModelError
+from companion.sim.gps_sim import GpsSim, GpsSimConfig
+from companion.sim.imu_model import ImuSimConfig
+from companion.sim.imu_sim import ImuSim
+from companion.sim.pilot import Pilot, surfaces_from_channels
 from companion.sim.profiles import (
     DEFAULT_GPS_PROFILE,
     DEFAULT_IMU_PROFILE,
@@ -64,7 +68,7 @@ from companion.sim.profiles import (
     SensorSetup,
     resolve_sensors,
 )
-from companion.sim.scenarios import SCENARIOS, Pilot, surfaces_from_channels
+from companion.sim.scenarios import SCENARIOS
 
 log = logging.getLogger(__name__)
 

@@ -46,6 +46,7 @@ from typing import Any
 from companion.core.config import Config
 from companion.core.files import write_json_bounded
 from companion.core.params import ParamError
+from companion.sim.faults import FAULT_KINDS
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,7 @@ KEYS: dict[str, Any] = {
     "imu_profile": str, "gps_profile": str, "turbulence": str, "horizon_camera": str,
 }
 """What a flight may set, with its type (`wind` is [N, E, D] in m/s)."""
+_FAULT_KEYS = {kind.key for kind in FAULT_KINDS}
 DEFAULTS: dict[str, Any] = {"scenario": "mixed", "seed": 0, "aircraft": "c172p",
                             "wind": [0.0, 0.0, 0.0], "duration_s": 60.0, "lockstep": True}
 FLIGHT_MARGIN_S = 120.0  # host seconds a flight may take beyond its simulated duration
@@ -145,8 +147,7 @@ def _checked(table: dict[str, Any], where: str) -> dict[str, Any]:
         if key == "wind" and (len(value) != 3 or not all(
                 isinstance(w, int | float) and not isinstance(w, bool) for w in value)):
             raise CampaignError(f"{where}: wind = {value!r}: expected [N, E, D] in m/s")
-        if key in ("faults", "vanish", "thread_faults") and not all(
-                isinstance(v, str) for v in value):
+        if key in _FAULT_KEYS and not all(isinstance(v, str) for v in value):
             raise CampaignError(f"{where}: {key}: expected a list of strings")
         if key == "horizon_camera":
             from companion.sim.world import HORIZON_CAMERA_CHOICES
@@ -215,10 +216,9 @@ def flight_command(spec: FlightSpec, campaign_dir: Path) -> list[str]:
                         ("turbulence", "--turbulence")):
         if key in s:
             cmd += [option, str(s[key])]
-    for key, option in (("faults", "--fault"), ("vanish", "--vanish"),
-                        ("thread_faults", "--thread-fault")):
-        for value in s.get(key) or ():
-            cmd += [option, value]
+    for kind in FAULT_KINDS:
+        for value in s.get(kind.key) or ():
+            cmd += [kind.option, value]
     return cmd
 
 

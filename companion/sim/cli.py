@@ -46,19 +46,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion sim: {exc}", file=sys.stderr)
         return 2
-    from companion.sim.clock_faults import parse_clock_step
-    from companion.sim.thread_faults import parse_thread_fault
-    from companion.sim.world import parse_fault, parse_vanish
+    from companion.sim.faults import FAULT_KINDS
 
-    checks = ([(parse_thread_fault, t) for t in args.thread_fault]
-              + [(parse_fault, t) for t in args.fault] + [(parse_vanish, t) for t in args.vanish]
-              + [(parse_clock_step, t) for t in args.clock_step])
-    for parse, text in checks:
-        try:
-            parse(text)  # type: ignore[operator]
-        except ValueError as exc:
-            print(f"companion sim: {exc}", file=sys.stderr)
-            return 2
+    for kind in FAULT_KINDS:
+        for text in getattr(args, kind.dest):
+            try:
+                kind.parse(text)
+            except ValueError as exc:
+                print(f"companion sim: {exc}", file=sys.stderr)
+                return 2
     if args.campaign is not None:
         return _campaign(args)
     if args.vehicles > 1:
@@ -257,19 +253,11 @@ def add_commands(sub: argparse._SubParsersAction,
                    "clean, through the real detector; its fixes reach the estimator as "
                    "HORIZON_ATTITUDE on the legacy command port (default off; docs/horizon.md)")
     p.add_argument("--gps-ashtech", action="store_true", help="add $PASHR,POS sentences")
-    p.add_argument("--fault", action="append", default=[], metavar="DEV:SPEC",
-                   help="inject device faults, e.g. imu:garbage=0.01,cut=0.01,badsum=0.01,"
-                   "silence=30-32; also flood=A-B (floodx=10 copies), wrongbaud=A-B "
-                   "(baudratio=2), gps:utcstep=AT:SECONDS (docs/sitl.md)")
-    p.add_argument("--vanish", action="append", default=[], metavar="DEV:START:DURATION",
-                   help="make a device's port disappear and return; DEV:START:DURATION:renamed "
-                   "returns it under another kernel name behind the same stable link")
-    p.add_argument("--thread-fault", action="append", default=[], metavar="THREAD:KIND:AT_S",
-                   help="inject a fault into a runtime thread at a flight time: KIND is raise, "
-                   "crash-loop, pyloop, cblock or alloc (e.g. estimator:raise:20)")
-    p.add_argument("--clock-step", action="append", default=[], metavar="AT_S:STEP_S",
-                   help="step the runtime process's wall clock by STEP_S s at flight time AT_S "
-                   "(as NTP or GPS time does in flight), e.g. 20:3600")
+    from companion.sim.faults import FAULT_KINDS
+
+    for kind in FAULT_KINDS:  # the catalogue of SITL faults: one option each
+        p.add_argument(kind.option, action="append", default=[], metavar=kind.syntax,
+                       help=kind.help)
     p.add_argument("--auto-switch", type=float, default=20.0, metavar="S",
                    help="auto scenario: when the pilot engages automatic mode")
     p.add_argument("--no-noise", action="store_true",

@@ -6,6 +6,8 @@ machine's clock would disturb every other program on it, so the step is made in 
 under test: `time.time` and `time.time_ns` return the stepped time from the moment the flight
 reaches the step's flight time. C code that reads the clock itself (`datetime.now`) is not
 stepped; nothing in the runtime's timing uses it.
+
+The step's syntax and parser are the fault catalogue's (`companion.sim.faults`).
 """
 
 from __future__ import annotations
@@ -18,18 +20,7 @@ from companion.core.clock import Clock
 
 log = logging.getLogger(__name__)
 
-__all__ = ["WallClockSteps", "parse_clock_step"]
-
-
-def parse_clock_step(text: str) -> tuple[float, float]:
-    """`AT_S:STEP_S`: at flight time AT_S (s), the wall clock moves by STEP_S (s, signed)."""
-    try:
-        at, step = (float(v) for v in text.split(":"))
-    except ValueError:
-        raise ValueError(f"--clock-step {text!r}: expected AT_S:STEP_S, e.g. 20:3600") from None
-    if at < 0:
-        raise ValueError(f"--clock-step {text!r}: AT_S must not be negative")
-    return at, step
+__all__ = ["WallClockSteps"]
 
 
 class WallClockSteps:

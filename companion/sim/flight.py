@@ -1,15 +1,12 @@
-"""JSBSim flight model: the ground truth of a simulated flight.
+"""JSBSim flight model: the adapter between JSBSim and the ground truth of a simulated flight.
 
-Everything else in SITL (device simulators, the on-board runtime, estimator benchmarks) is judged
-against what this module reports, so it hides JSBSim's imperial units and property names behind
-one SI dataclass, :class:`TruthState`, in the project's frames: NED navigation frame, body axes
-x forward, y right, z down.
+It hides JSBSim's imperial units and property names behind the one SI dataclass everything else
+in SITL is judged against (`companion.sim.truth.TruthState`, the project's frames: NED, body
+axes x forward, y right, z down), and flies the aircraft of `companion.sim.aircraft`; both live
+apart so that what reads the truth or the catalogue needs no JSBSim.
 
 The model runs at a fixed rate that is a whole multiple of 100 Hz, so the 100 Hz IMU frames of
 the device contract fall exactly on model steps (JSBSim's customary 120 Hz would not).
-
-Size: it is the single adapter between JSBSim's properties and imperial units and the rest
-of the project; keeping every conversion here is the point of it.
 """
 
 from __future__ import annotations
@@ -22,9 +19,10 @@ from dataclasses import dataclass
 
 import jsbsim
 
-from companion.core.fastinit import fast_frozen
 from companion.core.geo import NedFrame
 from companion.core.mathutil import clamp
+from companion.sim.aircraft import DEFAULT_AIRCRAFT, AircraftSpec, resolve_aircraft
+from companion.sim.truth import TruthState
 
 log = logging.getLogger(__name__)
 
@@ -43,100 +41,6 @@ TRIM_METHODS = ("full", "settle")
 
 class FlightModelError(RuntimeError):
     """JSBSim could not load, start or continue the simulation."""
-
-
-@dataclass(frozen=True)
-class AircraftSpec:
-    """One flyable JSBSim model and the speeds a pilot needs to know to fly it sensibly.
-
-    Speeds are true airspeeds near sea level; the scripted pilot uses them as targets and
-    limits, the tests as sanity bounds. ``cruise_throttle`` is the trimmed throttle at cruise
-    speed near sea level, the pilot's starting guess when it is not told the actual trim.
-    """
-
-    name: str
-    jsbsim_model: str
-    description: str
-    cruise_airspeed_m_s: float
-    stall_airspeed_m_s: float
-    never_exceed_m_s: float
-    loop_entry_airspeed_m_s: float
-    max_load_factor: float
-    cruise_throttle: float
-
-
-AIRCRAFT: dict[str, AircraftSpec] = {
-    "c172p": AircraftSpec(
-        name="c172p",
-        jsbsim_model="c172p",
-        description=(
-            "Cessna 172P (the light aircraft FlightGear flies by default: conventional high-wing "
-            "tractor layout with docile, well-damped modes; unlike c172x it models no 0.05 rad "
-            "elevator backlash, which makes any closed-loop pitch control limit-cycle)"
-        ),
-        cruise_airspeed_m_s=50.0,
-        stall_airspeed_m_s=25.0,
-        never_exceed_m_s=82.0,
-        loop_entry_airspeed_m_s=64.0,
-        max_load_factor=4.0,
-        cruise_throttle=0.68,
-    ),
-    "j3cub": AircraftSpec(
-        name="j3cub",
-        jsbsim_model="J3Cub",
-        description=(
-            "Piper J-3 Cub (light, slow, low wing loading: closest in speed range and gust "
-            "response to a large research model aircraft among the shipped models)"
-        ),
-        cruise_airspeed_m_s=30.0,
-        stall_airspeed_m_s=17.0,
-        never_exceed_m_s=54.0,
-        loop_entry_airspeed_m_s=48.0,
-        max_load_factor=4.0,
-        cruise_throttle=0.57,
-    ),
-}
-DEFAULT_AIRCRAFT = "c172p"
-
-
-@fast_frozen
-@dataclass(frozen=True)
-class TruthState:
-    """True aircraft state at one instant, SI units.
-
-    Frames: NED for positions and velocities (position relative to the start point, on the
-    tangent plane of :class:`companion.core.geo.NedFrame`), body axes x forward, y right, z down
-    for rates and specific force. Euler angles are the usual yaw-pitch-roll (3-2-1) sequence,
-    ``yaw_rad`` in (-pi, pi] from true north. Body rates are inertial (what a gyro measures; they
-    differ from earth-relative rates by at most the earth rate, 7.3e-5 rad/s). Specific force is
-    the non-gravitational force per unit mass at the IMU, which sits at the centre of gravity:
-    what an accelerometer measures, about (0, 0, -9.8) in level flight. ``alt_m`` is height
-    above the WGS-84 ellipsoid, which is mean sea level in this simulator. ``airspeed_m_s`` is
-    true airspeed; ``alpha_rad`` and ``beta_rad`` are angle of attack and sideslip.
-    """
-
-    time_s: float
-    lat_deg: float
-    lon_deg: float
-    alt_m: float
-    north_m: float
-    east_m: float
-    down_m: float
-    vn_m_s: float
-    ve_m_s: float
-    vd_m_s: float
-    roll_rad: float
-    pitch_rad: float
-    yaw_rad: float
-    p_rad_s: float
-    q_rad_s: float
-    r_rad_s: float
-    ax_m_s2: float
-    ay_m_s2: float
-    az_m_s2: float
-    airspeed_m_s: float
-    alpha_rad: float = 0.0
-    beta_rad: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,18 +101,6 @@ def jsbsim_root_dir() -> str:
     if os.path.isdir(os.path.join(here, "aircraft")):
         return here
     return str(jsbsim.get_default_root_dir())
-
-
-def resolve_aircraft(aircraft: str | AircraftSpec) -> AircraftSpec:
-    """Look an aircraft up by name (case-insensitive), or pass a spec through."""
-    if isinstance(aircraft, AircraftSpec):
-        return aircraft
-    spec = AIRCRAFT.get(str(aircraft).lower())
-    if spec is None:
-        raise ValueError(
-            f"unknown aircraft {aircraft!r}: choose one of {', '.join(sorted(AIRCRAFT))}"
-        )
-    return spec
 
 
 class FlightModel:

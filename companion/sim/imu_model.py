@@ -1,7 +1,8 @@
 """The simulated IMU's error model: what a real part adds to the true rates and specific force.
 
-Why its own module: `companion.sim.devices.ImuSim` turns measurements into the contract's bytes;
-this module decides what the measurements are. The terms, in the order a sample meets them:
+Why its own module: `companion.sim.imu_sim.ImuSim` turns measurements into the contract's bytes;
+this module decides what the measurements are, from the parameters it owns (`ImuSimConfig`,
+which the named profiles of `companion.sim.profiles` fill in). The terms, in the order a sample meets them:
 
 * mounting misalignment: the part's axes are the body axes turned by a fixed small rotation;
 * scale-factor error and cross-axis sensitivity (a matrix ``I + S + C``), the scale factors
@@ -29,15 +30,12 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from companion.sim.devices import ImuSimConfig
-
-__all__ = ["CALIBRATION_TEMPERATURE_C", "ImuErrorModel", "dlpf_gain", "independent_stream",
-           "rotation_matrix"]
+__all__ = ["CALIBRATION_TEMPERATURE_C", "ImuErrorModel", "ImuSimConfig", "dlpf_gain",
+           "independent_stream", "rotation_matrix"]
 
 CALIBRATION_TEMPERATURE_C = 25.0
 """Temperature at which a part's bias and scale factor are specified (datasheets: 25 C)."""
@@ -45,6 +43,79 @@ BLOCK_FRAMES = 256
 """Frames of random numbers drawn at once: numpy's call overhead dominates small draws."""
 _MATRIX_REFRESH_C = 0.01
 """Temperature change that rebuilds the scale-factor matrices (slow: a warm-up takes minutes)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSimConfig:
+    """Error model of the simulated IMU (1-sigma values; each frame is one 10 ms sample).
+
+    The defaults are the original simple model (white noise, turn-on bias, bias random walk)
+    and stay so: named, sourced profiles (`companion.sim.profiles`) fill in the other terms,
+    which `companion.sim.imu_model` applies. Every term defaults to off.
+    """
+
+    gyro_noise_rad_s: float = 0.003
+    """White noise per 100 Hz sample (a noise density times sqrt(100 Hz))."""
+    accel_noise_m_s2: float = 0.03
+    gyro_bias_sigma_rad_s: float = 0.005
+    """Spread of the turn-on gyro bias, drawn once per simulator."""
+    accel_bias_sigma_m_s2: float = 0.05
+    gyro_bias_walk_rad_s_sqrt_s: float = 5e-5
+    accel_bias_walk_m_s2_sqrt_s: float = 5e-4
+    temperature_c: float = 35.0
+    """The part's temperature once warm (constant when `temperature_start_c` is None)."""
+    self_test_frames: int = 0
+    """Frames at start-up flagged 'self-test running' with gyro/accel not yet ok."""
+    bit_word: int = 0
+    gyro_bias_instability_rad_s: float = 0.0
+    """Sigma of the first-order Gauss-Markov bias (in-run bias instability)."""
+    accel_bias_instability_m_s2: float = 0.0
+    bias_correlation_s: float = 100.0
+    """Correlation time of the Gauss-Markov biases."""
+    gyro_scale_sigma: float = 0.0
+    """Scale-factor error per axis (fraction, drawn at turn-on)."""
+    accel_scale_sigma: float = 0.0
+    gyro_cross_axis_sigma: float = 0.0
+    """Cross-axis sensitivity, each off-diagonal element (fraction, drawn at turn-on)."""
+    accel_cross_axis_sigma: float = 0.0
+    misalignment_sigma_rad: float = 0.0
+    """Mounting misalignment per axis: a fixed small rotation of the part against the body."""
+    gyro_g_sensitivity_rad_s_per_m_s2: float = 0.0
+    """Gyro rate error per unit specific force, each element of a 3x3 matrix."""
+    temperature_start_c: float | None = None
+    """Temperature at switch-on; it warms towards `temperature_c` with `temperature_tau_s`."""
+    temperature_tau_s: float = 300.0
+    gyro_bias_temp_rad_s_per_c: float = 0.0
+    """Bias change per degree away from 25 C (sigma of the per-axis coefficient)."""
+    accel_bias_temp_m_s2_per_c: float = 0.0
+    gyro_scale_temp_per_c: float = 0.0
+    accel_scale_temp_per_c: float = 0.0
+    gyro_lsb_rad_s: float = 0.0
+    """The part's own quantisation (0: none beyond the wire format's)."""
+    accel_lsb_m_s2: float = 0.0
+    gyro_range_rad_s: float = math.inf
+    """The part's configured full scale: outputs clip there."""
+    accel_range_m_s2: float = math.inf
+    dlpf_hz: float = 0.0
+    """The part's digital low-pass filter (-3 dB), applied to the vibration (0: none)."""
+    vib_accel_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Engine vibration amplitude per body axis at `vib_ref_rpm`, first harmonic."""
+    vib_gyro_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    vib_ref_rpm: float = 2400.0
+    vib_harmonics: tuple[tuple[float, float], ...] = ((1.0, 1.0), (2.0, 0.6))
+    """(multiple of the shaft rate, relative amplitude): shaft imbalance, blade pass ..."""
+    level_error_sigma_rad: float | None = None
+    """The installation was level-calibrated before the flight with the aircraft standing this
+    far off level (1 sigma, roll and pitch); None: no level calibration (`ImuSim.level_calibration`)."""
+
+    def temperature_at(self, t_s: float) -> float:
+        """The part's temperature ``t_s`` after switch-on (warming exponentially)."""
+        start = self.temperature_start_c
+        if start is None or self.temperature_tau_s <= 0:
+            return self.temperature_c
+        return self.temperature_c + (start - self.temperature_c) * math.exp(
+            -t_s / self.temperature_tau_s)
+
 
 
 def rotation_matrix(rotvec_rad: tuple[float, float, float]) -> list[list[float]]:

@@ -30,8 +30,10 @@ from companion.core.files import write_json_bounded
 from companion.core.lockstep import LockstepClock
 from companion.core.serialport import register_url_scheme
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
+from companion.sim.faults import parse_fault, parse_thread_fault, parse_vanish
 from companion.sim.plugins import simulated_devices
-from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
+from companion.sim.ports import DEVICES
+from companion.sim.thread_faults import ThreadFaultInjector
 from companion.vehicle import VEHICLE, VehicleTable, device_settings
 from companion.watchdog import RuntimeContext, ThreadManager
 
@@ -155,7 +157,7 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
     """Fly one simulated vehicle in lockstep; returns the run summary (as `run_sim`).
 
     `vehicle` is the table the runtime builds (a plug-in device's row brings its simulator)."""
-    from companion.sim.world import DEVICES, World, WorldOptions, parse_fault, parse_vanish
+    from companion.sim.world import World, WorldOptions
 
     problems = lockstep_problems(sim.thread_faults, sim.clock_steps)
     if problems:
@@ -164,14 +166,15 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
     flight_dir = new_flight_dir(Path(cfg.logs.dir),
                                 suffix=f"-v{cfg.vehicle.id}" if cfg.vehicle.id != 1 else "")
     extra = simulated_devices(vehicle)
-    ports = {dev: DevicePort(dev) for dev in (*DEVICES, *extra)}
+    devices = (*DEVICES, *extra)
+    ports = {dev: DevicePort(dev) for dev in devices}
     world = World(WorldOptions(
         scenario=sim.scenario, seed=sim.seed, aircraft=sim.aircraft,
         wind_ned_m_s=tuple(sim.wind_ned_m_s), flight_dir=flight_dir,
         gps_latency_s=sim.gps_latency_s, gps_ashtech=sim.gps_ashtech,
         imu_seed=getattr(sim, "imu_seed", None),
-        faults=dict(parse_fault(f) for f in sim.faults),
-        vanish=[parse_vanish(v) for v in sim.vanish], imu_noise=not sim.no_noise,
+        faults=dict(parse_fault(f, devices) for f in sim.faults),
+        vanish=[parse_vanish(v, devices) for v in sim.vanish], imu_noise=not sim.no_noise,
         imu_profile=getattr(sim, "imu_profile", None), gps_profile=getattr(sim, "gps_profile", None),
         turbulence=getattr(sim, "turbulence", None),
         auto_switch_s=sim.auto_switch_s, horizon_camera=getattr(sim, "horizon_camera", "off"),
@@ -220,7 +223,7 @@ def run_lockstep(cfg: Config, sim: Any, duration_s: float | None, *,
             on_runtime(rt)
         # no ground links here: the camera's fixes go into the slot the legacy adapter writes,
         # and each frame is detected inside the world's tick (simulated time stands still)
-        from companion.sim.camera import SlotLink
+        from companion.sim.world_camera import SlotLink
 
         world.attach_camera(SlotLink(rt.ctx.state.horizon), threaded=False)
 

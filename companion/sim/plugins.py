@@ -21,7 +21,7 @@ from companion.vehicle import VEHICLE, VehicleTable
 if TYPE_CHECKING:  # the table is read by every flight; JSBSim and numpy load with the world
     import numpy as np
 
-    from companion.sim.flight import TruthState
+    from companion.sim.truth import TruthState
 
 __all__ = ["DeviceSimulator", "build_simulator", "simulated_devices"]
 

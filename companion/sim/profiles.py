@@ -19,7 +19,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from companion.sim.devices import GpsSimConfig, ImuSimConfig
+from companion.sim.gps_sim import GpsSimConfig
+from companion.sim.imu_model import ImuSimConfig
 
 __all__ = [
     "DEFAULT_GPS_PROFILE",

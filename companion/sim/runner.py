@@ -21,8 +21,9 @@ from companion.core.config import Config
 from companion.core.files import write_json_bounded
 from companion.liveview import live_view_bridges
 from companion.runtime import Runtime, RuntimeOptions, new_flight_dir
-from companion.sim.clock_faults import WallClockSteps, parse_clock_step
-from companion.sim.thread_faults import ThreadFaultInjector, parse_thread_fault
+from companion.sim.clock_faults import WallClockSteps
+from companion.sim.faults import parse_clock_step, parse_thread_fault, world_faults
+from companion.sim.thread_faults import ThreadFaultInjector
 from companion.vehicle import VEHICLE, device_settings
 from companion.watchdog import RuntimeContext, ThreadManager
 
@@ -56,7 +57,7 @@ class SimOptions:
     faults: list[str] = field(default_factory=list)
     vanish: list[str] = field(default_factory=list)
     thread_faults: list[str] = field(default_factory=list)
-    """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.thread_faults)."""
+    """`THREAD:KIND:AT_S` faults injected into the runtime's threads (companion.sim.faults)."""
     auto_switch_s: float = 20.0
     no_noise: bool = False
     level_calibration: bool = True
@@ -69,7 +70,7 @@ class SimOptions:
     gps_profile: str | None = None
     turbulence: str | None = None
     clock_steps: list[str] = field(default_factory=list)
-    """`AT_S:STEP_S` wall-clock steps in the runtime's process (companion.sim.clock_faults)."""
+    """`AT_S:STEP_S` wall-clock steps in the runtime's process (companion.sim.faults)."""
     horizon_camera: str = "off"
     """The forward camera of the horizon experiment (`companion.sim.world.HORIZON_CAMERA_CHOICES`):
     its detector's fixes reach the estimator as HORIZON_ATTITUDE on the legacy command port."""
@@ -81,7 +82,7 @@ class WorldProcess:
     def __init__(self, opts: SimOptions, clock: Clock, device_dir: Path, flight_dir: Path,
                  duration_s: float | None) -> None:
         mono0, real0 = clock.epoch
-        cmd = [sys.executable, "-m", "companion.sim.world", "--scenario", opts.scenario,
+        cmd = [sys.executable, "-m", "companion.sim.world_process", "--scenario", opts.scenario,
                "--seed", str(opts.seed), "--aircraft", opts.aircraft, "--scale", str(clock.scale),
                "--epoch", str(mono0), str(real0), "--device-dir", str(device_dir),
                "--flight-dir", str(flight_dir),
@@ -106,10 +107,9 @@ class WorldProcess:
             cmd.append("--no-level-cal")
         if opts.horizon_camera != "off":
             cmd += ["--horizon-camera", opts.horizon_camera]
-        for f in opts.faults:
-            cmd += ["--fault", f]
-        for v in opts.vanish:
-            cmd += ["--vanish", v]
+        for kind in world_faults():  # the world applies these: its command line takes them
+            for text in getattr(opts, kind.key):
+                cmd += [kind.option, text]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE,
                                      text=True)
         self.stats: dict[str, Any] = {}

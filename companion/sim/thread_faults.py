@@ -1,7 +1,7 @@
 """Faults injected into the runtime's own threads during a SITL flight (`--thread-fault`).
 
-The device simulators inject faults into the bytes (`--fault`, `--vanish`); this injects them
-into the code: at a given flight time, a thread's `step` starts misbehaving in one of the ways the
+The world injects faults into the devices' bytes and ports (`--fault`, `--vanish`); this injects
+them into the code (the kinds and their syntax are the fault catalogue's, `companion.sim.faults`): at a given flight time, a thread's `step` starts misbehaving in one of the ways the
 supervisor is built to survive, so the fault campaign can measure what the aircraft does and what
 it is told, in a real flight rather than in a unit test:
 
@@ -20,39 +20,17 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
+from companion.sim.faults import ThreadFault
 from companion.watchdog import RuntimeContext, ThreadManager
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KINDS", "ThreadFault", "ThreadFaultInjector", "parse_thread_fault"]
+__all__ = ["ThreadFaultInjector"]
 
-KINDS = ("raise", "crash-loop", "pyloop", "cblock", "alloc")
 ALLOC_CHUNK = 1 << 20
 ALLOC_FOR_S = 10.0
-
-
-@dataclass(frozen=True)
-class ThreadFault:
-    thread: str
-    kind: str
-    at_s: float
-    """Flight-clock seconds after the runtime started."""
-
-
-def parse_thread_fault(text: str) -> ThreadFault:
-    """`THREAD:KIND:AT_S`, e.g. `estimator:raise:20`."""
-    parts = text.split(":")
-    if len(parts) != 3 or parts[1] not in KINDS:
-        raise ValueError(f"--thread-fault {text!r}: expected THREAD:KIND:AT_S with KIND one of "
-                         f"{', '.join(KINDS)}")
-    try:
-        at_s = float(parts[2])
-    except ValueError:
-        raise ValueError(f"--thread-fault {text!r}: AT_S must be a number of seconds") from None
-    return ThreadFault(parts[0], parts[1], at_s)
 
 
 class ThreadFaultInjector:

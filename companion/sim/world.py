@@ -1,41 +1,34 @@
-"""The simulated world: JSBSim flight, a scripted pilot and three devices on pseudo-terminals.
+"""The simulated world: JSBSim flight, a scripted pilot and the devices, tick by tick.
 
-Runs as its own process (`python -m companion.sim.world ...`, started by `companion sim`), so
-the runtime under test is exactly the flight program: it opens the device paths it is given and
-reads bytes, without knowing they come from a simulator. Both processes share one `Clock`
-epoch and scale, so ground truth and the runtime's logs share a timeline, also faster than
-real time.
+The world is the aircraft and everything around it: the flight model, the scripted pilot on
+the servo board's pilot channels, the device simulators writing to the device ports, the world
+faults of the catalogue (`companion.sim.faults`: byte faults and vanishing ports) and the truth
+log. Two things run it:
 
-Device paths are stable symlinks (`<device dir>/imu` ...) to the current pseudo-terminal, as
-udev's /dev/serial/by-id links are to a USB adapter's ttyUSBn: a port can vanish and come back
-(a fault the drivers must survive), also under another kernel name, and the stable name follows.
-
-A lockstep flight (`companion.sim.lockstep`) builds the same `World` with in-process ports and
-runs its tick as a task on simulated time (`run_lockstep`) instead of this process's loop.
+* its own process (`companion.sim.world_process`, started by `companion sim`), with
+  pseudo-terminals as ports (`companion.sim.ports`), so the runtime under test is exactly the
+  flight program: it opens the device paths it is given and reads bytes, without knowing they
+  come from a simulator. Both processes share one `Clock` epoch and scale, so ground truth and
+  the runtime's logs share a timeline, also faster than real time (`World.run`);
+* a lockstep flight (`companion.sim.lockstep`), with in-process ports, running its tick as a
+  task on simulated time (`World.run_lockstep`).
 
 With `horizon_camera` set, the world also carries the forward camera of the thesis's horizon
 experiment (`companion.sim.camera`): frames rendered at the true attitude go through the real
 detector, and its fixes reach the runtime as HORIZON_ATTITUDE datagrams on the runtime's legacy
 command port, which the runtime names in its GO line (it may have bound port 0).
-
-Size: the tick (flight model, pilot, devices, faults, truth log) is shared by the two ways of
-running the world, and the fault options' parsing sits beside the faults it configures.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import logging
 import math
 import os
 import select
-import signal
 import sys
 import threading
 import time
-import tty
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,20 +37,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from companion.core.clock import Clock
-from companion.sim.devices import (
-    FaultInjector,
-    FaultPlan,
-    GpsSim,
-    ImuSim,
-    ServoBoardSim,
-)
-from companion.sim.flight import FlightModel, FlightModelError, TruthState
-from companion.sim.plugins import DeviceSimulator, build_simulator, simulated_devices
-from companion.sim.profiles import GPS_PROFILES, IMU_PROFILES, TURBULENCE, resolve_sensors
-from companion.sim.scenarios import Pilot, Surfaces, surfaces_from_channels
+from companion.logs.truth import FMT_SURFACES, FMT_TRUTH, define_truth_log
+from companion.sim.byte_faults import FaultInjector
+from companion.sim.faults import FaultPlan, Vanish
+from companion.sim.flight import FlightModel, FlightModelError
+from companion.sim.gps_sim import GpsSim
+from companion.sim.imu_sim import ImuSim
+from companion.sim.pilot import Pilot, Surfaces, surfaces_from_channels
+from companion.sim.plugins import DeviceSimulator, build_simulator
+from companion.sim.ports import DEVICES, Pty
+from companion.sim.profiles import resolve_sensors
+from companion.sim.servo_sim import ServoBoardSim
+from companion.sim.truth import TruthState
 
 if TYPE_CHECKING:
-    from companion.sim.camera import CameraResult, WorldCamera
+    from companion.sim.camera import CameraResult
+    from companion.sim.world_camera import WorldCamera
 
 log = logging.getLogger(__name__)
 
@@ -65,32 +60,10 @@ IMU_DT_S = 0.01
 GPS_EVERY = 10  # IMU ticks per GPS epoch at 10 Hz; a GPS profile's rate sets the world's own
 PILOT_EVERY = 2  # IMU ticks per servo-board frame (50 Hz)
 TRUTH_EVERY = 1
-GO_TIMEOUT_S = 120.0
-DEVICES = ("imu", "gps", "servo")
 HORIZON_CAMERA_CHOICES = ("off", "clean", "light", "thesis")
 """`--horizon-camera`: no camera, or the camera with that level of video disturbance
 (`companion.sim.camera.DISTURBANCE_LEVELS`, where "clean" is "none")."""
 
-FMT_TRUTH = 1
-FMT_SURFACES = 2
-TRUTH_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_m",
-                 "vn_m_s", "ve_m_s", "vd_m_s", "p_rad_s", "q_rad_s", "r_rad_s",
-                 "ax_m_s2", "ay_m_s2", "az_m_s2", "lat_deg", "lon_deg", "alt_m",
-                 "airspeed_m_s", "sim_time_s"]
-
-
-@dataclass
-class Vanish:
-    """A port that disappears at `start_s` (sim time) and returns `duration_s` later."""
-
-    device: str
-    start_s: float
-    duration_s: float
-    renamed: bool = False
-    """Return under another kernel name (/dev/pts/N), as a USB adapter re-enumerated as
-    ttyUSB1 after ttyUSB0; the stable link follows it."""
-    done: bool = False
-    gone: bool = False
 
 
 @dataclass
@@ -131,62 +104,6 @@ class WorldOptions:
     level_calibration: bool = True
     """Level-calibrate the installation before the flight, as a user does (`ImuSim.level_calibration`;
     profiles without a levelling error have none): the runtime gets the trims as parameters."""
-
-
-class Pty:
-    """One pseudo-terminal pair whose slave path is published through a stable symlink."""
-
-    def __init__(self, link: Path) -> None:
-        self.link = link
-        self.master = -1
-        self.slave = -1
-        self.dropped_bytes = 0
-        self.name = ""
-        self.open()
-
-    def open(self, avoid_name: str | None = None) -> None:
-        master, slave = os.openpty()
-        held: list[int] = []
-        while avoid_name is not None and os.ttyname(slave) == avoid_name and len(held) < 8:
-            held += [master, slave]  # keep the old number taken until we have another one
-            master, slave = os.openpty()
-        for fd in held:
-            os.close(fd)
-        self.name = os.ttyname(slave)
-        tty.setraw(slave)  # no echo, no line discipline: bytes pass unchanged
-        os.set_blocking(master, False)
-        self.master, self.slave = master, slave
-        tmp = self.link.with_suffix(".tmp")
-        try:
-            tmp.unlink()
-        except FileNotFoundError:
-            pass
-        tmp.symlink_to(self.name)
-        os.replace(tmp, self.link)
-
-    def close(self) -> None:
-        for fd in (self.master, self.slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-        self.master = self.slave = -1
-        try:
-            self.link.unlink()
-        except FileNotFoundError:
-            pass
-
-    def write(self, data: bytes) -> None:
-        if self.master < 0 or not data:
-            return
-        try:
-            n = os.write(self.master, data)
-        except BlockingIOError:
-            n = 0
-        except OSError:
-            n = 0
-        self.dropped_bytes += len(data) - n  # a reader that does not keep up loses bytes, as on a UART
 
 
 class World:
@@ -254,12 +171,8 @@ class World:
         Its generator is seeded from the world's seed alone, so adding a camera changes no
         other sensor's draws."""
         from companion.sim.camera import LATENCY_S as CAMERA_LATENCY_S
-        from companion.sim.camera import (
-            LegacyHorizonLink,
-            SimCamera,
-            WorldCamera,
-            camera_seed,
-        )
+        from companion.sim.camera import SimCamera, camera_seed
+        from companion.sim.world_camera import LegacyHorizonLink, WorldCamera
 
         if self.opts.horizon_camera == "off":
             return
@@ -274,7 +187,7 @@ class World:
     def retarget_camera(self, dest: str) -> bool:
         """Point the camera's fixes at another `HOST:PORT` (the runtime was rebooted and bound
         a new legacy port); False when the camera does not send over UDP."""
-        from companion.sim.camera import LegacyHorizonLink
+        from companion.sim.world_camera import LegacyHorizonLink
 
         link = self.camera.link if self.camera is not None else None
         if not isinstance(link, LegacyHorizonLink):
@@ -330,8 +243,7 @@ class World:
                                writer_thread=writer_thread)
         self.logs.start()
         self.tlog = self.logs.open("truth")
-        self.tlog.define(FMT_TRUTH, ",".join(["%.6f"] * 15 + ["%.9lf", "%.9lf", "%.3f", "%.3f",
-                                                                "%.3lf"]), TRUTH_COLUMNS)
+        define_truth_log(self.tlog)
         self.tlog.define(FMT_SURFACES, ",".join(["%hu"] * 8) + ",%hhu,%.4f,%.4f,%.4f,%.4f",
                          [f"servo{i}_us" for i in range(1, 9)]
                          + ["auto_active", "aileron", "elevator", "rudder", "throttle"])
@@ -523,163 +435,3 @@ def _host_port(text: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit():
         raise ValueError(f"horizon camera: expected HOST:PORT, got {text!r}")
     return host, int(port)
-
-
-def _follow_stdin(world: World) -> None:
-    """After GO, the runner may name a new camera destination (`DEST {"horizon_dest": ...}`)
-    when the runtime reboots; anything else, or the pipe closing, is ignored."""
-    for line in sys.stdin:
-        word, _, extra = line.strip().partition(" ")
-        if word != "DEST":
-            continue
-        try:
-            world.retarget_camera(str(json.loads(extra)["horizon_dest"]))
-        except (ValueError, KeyError, TypeError) as exc:
-            print(f"companion.sim.world: bad DEST line {line.strip()!r}: {exc}", file=sys.stderr)
-
-
-def parse_fault(text: str) -> tuple[str, FaultPlan]:
-    """`DEV:key=value,...`: garbage, cut, badsum (probabilities); silence, flood, wrongbaud
-    (START-END windows, repeatable); floodx (copies per chunk, default 10); baudratio (the
-    device's baud rate over the expected one, default 2); utcstep=AT:SECONDS (GPS only)."""
-    dev, _, spec = text.partition(":")
-    if dev not in DEVICES:
-        raise ValueError(f"--fault {text!r}: device must be one of {', '.join(DEVICES)}")
-    kwargs: dict[str, Any] = {}
-    windows: dict[str, list[tuple[float, float]]] = {"silence": [], "flood": [], "wrongbaud": []}
-    steps: list[tuple[float, float]] = []
-    for item in filter(None, spec.split(",")):
-        key, _, value = item.partition("=")
-        try:
-            _fault_item(dev, key, value, kwargs, windows, steps)
-        except ValueError as exc:
-            raise ValueError(f"--fault {text!r}: {item!r}: {exc}") from None
-    try:
-        return dev, FaultPlan(silence_s=tuple(windows["silence"]),
-                              flood_s=tuple(windows["flood"]),
-                              wrong_baud_s=tuple(windows["wrongbaud"]), utc_step_s=tuple(steps),
-                              **kwargs)
-    except ValueError as exc:
-        raise ValueError(f"--fault {text!r}: {exc}") from None
-
-
-def _fault_item(dev: str, key: str, value: str, kwargs: dict[str, Any],
-                windows: dict[str, list[tuple[float, float]]],
-                steps: list[tuple[float, float]]) -> None:
-    if key == "garbage":
-        kwargs["garbage_prob"] = float(value)
-    elif key == "cut":
-        kwargs["cut_prob"] = float(value)
-    elif key == "badsum":
-        kwargs["bad_checksum_prob"] = float(value)
-    elif key in ("silence", "flood", "wrongbaud"):
-        a, _, b = value.partition("-")
-        windows[key].append((float(a), float(b)))
-    elif key == "floodx":
-        kwargs["flood_factor"] = int(value)
-    elif key == "baudratio":
-        kwargs["baud_ratio"] = float(value)
-    elif key == "utcstep" and dev == "gps":
-        at, _, delta = value.partition(":")
-        steps.append((float(at), float(delta)))
-    else:
-        raise ValueError(f"unknown key {key!r} (garbage, cut, badsum, "
-                         "silence, flood, floodx, wrongbaud, baudratio, utcstep for gps)")
-
-
-def parse_vanish(text: str) -> Vanish:
-    """`DEV:START:DURATION[:renamed]` in sim seconds."""
-    try:
-        dev, start, duration, *rest = text.split(":")
-        if dev not in DEVICES or rest not in ([], ["renamed"]):
-            raise ValueError
-        return Vanish(dev, float(start), float(duration), renamed=bool(rest))
-    except ValueError:
-        raise ValueError(f"--vanish {text!r}: expected DEV:START_S:DURATION_S[:renamed]") from None
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="companion.sim.world", description=__doc__)
-    ap.add_argument("--scenario", default="mixed")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--aircraft", default="c172p")
-    ap.add_argument("--wind", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("N", "E", "D"))
-    ap.add_argument("--scale", type=float, default=1.0)
-    ap.add_argument("--epoch", type=int, nargs=2, metavar=("MONO_NS", "REAL_NS"))
-    ap.add_argument("--device-dir", type=Path, required=True)
-    ap.add_argument("--flight-dir", type=Path)
-    ap.add_argument("--duration", type=float, default=0.0)
-    ap.add_argument("--gps-latency", type=float)
-    ap.add_argument("--imu-seed", type=int)
-    ap.add_argument("--imu-profile", choices=list(IMU_PROFILES))
-    ap.add_argument("--gps-profile", choices=list(GPS_PROFILES))
-    ap.add_argument("--turbulence", choices=list(TURBULENCE))
-    ap.add_argument("--gps-ashtech", action="store_true")
-    ap.add_argument("--fault", action="append", default=[])
-    ap.add_argument("--vanish", action="append", default=[])
-    ap.add_argument("--auto-switch", type=float, default=20.0)
-    ap.add_argument("--no-noise", action="store_true")
-    ap.add_argument("--no-level-cal", action="store_true")
-    ap.add_argument("--horizon-camera", default="off", choices=HORIZON_CAMERA_CHOICES)
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="sim: %(levelname)s %(message)s")
-    try:
-        faults = dict(parse_fault(f) for f in args.fault)
-        vanish = [parse_vanish(v) for v in args.vanish]
-    except ValueError as exc:
-        print(f"companion.sim.world: {exc}", file=sys.stderr)
-        return 2
-    opts = WorldOptions(
-        scenario=args.scenario, seed=args.seed, aircraft=args.aircraft,
-        wind_ned_m_s=tuple(args.wind), scale=args.scale,
-        epoch=tuple(args.epoch) if args.epoch else None, device_dir=args.device_dir,
-        flight_dir=args.flight_dir, duration_s=args.duration, gps_latency_s=args.gps_latency,
-        imu_seed=args.imu_seed,
-        gps_ashtech=args.gps_ashtech, faults=faults, vanish=vanish, imu_noise=not args.no_noise,
-        imu_profile=args.imu_profile, gps_profile=args.gps_profile, turbulence=args.turbulence,
-        auto_switch_s=args.auto_switch, horizon_camera=args.horizon_camera,
-        level_calibration=not args.no_level_cal, extra_devices=simulated_devices())
-    try:
-        world = World(opts)
-    except (FlightModelError, ValueError) as exc:
-        print(f"companion.sim.world: cannot start: {exc}", file=sys.stderr)
-        return 2
-    signal.signal(signal.SIGTERM, lambda *_: world.stop())
-    signal.signal(signal.SIGINT, lambda *_: world.stop())
-    frame = world.model.frame
-    ready: dict[str, Any] = {d: str(opts.device_dir / d) for d in world.device_names}
-    ready["home"] = [frame.lat0_deg, frame.lon0_deg, frame.alt0_m]
-    ready["params"] = world.runtime_params()
-    print("READY " + json.dumps(ready), flush=True)
-    # Fly only once the runtime has opened its ports: until then nobody would read the devices.
-    # The GO line may carry what only the started runtime knows: `GO {"horizon_dest": ...}`.
-    ready_to_fly, _, _ = select.select([sys.stdin], [], [], GO_TIMEOUT_S)
-    line = sys.stdin.readline().strip() if ready_to_fly else ""
-    word, _, extra = line.partition(" ")
-    if word != "GO":
-        for pty in world.ptys.values():
-            pty.close()
-        print("companion.sim.world: the runtime never said GO", file=sys.stderr)
-        return 1
-    try:
-        go = json.loads(extra) if extra else {}
-        if opts.horizon_camera != "off":
-            world.attach_camera(str(go["horizon_dest"]), vehicle_id=int(go.get("vehicle_id", 1)))
-    except (ValueError, KeyError, TypeError) as exc:
-        for pty in world.ptys.values():
-            pty.close()
-        print(f"companion.sim.world: bad GO line {line!r}: {exc}", file=sys.stderr)
-        return 1
-    if world.camera is not None:
-        threading.Thread(target=_follow_stdin, args=(world,), name="world-stdin",
-                         daemon=True).start()
-    stats = world.run()
-    try:
-        print("STATS " + json.dumps(stats), flush=True)
-    except BrokenPipeError:  # the runtime is gone (killed): nobody to report to
-        return 1
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
