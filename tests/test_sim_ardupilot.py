@@ -23,6 +23,7 @@ from companion.sim.ardupilot import (
     SITL_ENV,
     ArduPlaneSitl,
     PtyCable,
+    SitlError,
     SitlNotFound,
     find_binary,
     find_defaults,
@@ -83,6 +84,19 @@ def test_a_missing_binary_is_one_line_saying_how_to_give_one(
     with pytest.raises(SitlNotFound, match="--autopilot-defaults PATH") as err:
         find_defaults(find_binary(not_executable))  # no plane.parm beside it
     assert "\n" not in str(err.value)
+
+
+def test_an_autopilot_that_exits_at_once_is_an_error_with_its_last_words(tmp_path: Path) -> None:
+    binary = tmp_path / "arduplane"
+    binary.write_text("#!/bin/sh\necho starting\necho 'bad option: --model' >&2\nexit 3\n")
+    binary.chmod(0o755)
+    (tmp_path / "plane.parm").write_text("")
+    before = _children()
+    sitl = ArduPlaneSitl(binary)
+    with pytest.raises(SitlError, match=r"exited with code 3: bad option: --model"):
+        sitl.start()
+    assert sitl.proc is None and sitl.workdir is None and sitl.companion_cable is None
+    assert _children() == before
 
 
 def test_the_circuit_takes_off_and_circles_away_from_home_for_ever() -> None:

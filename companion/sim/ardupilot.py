@@ -16,6 +16,8 @@ SERIAL1 is a second cable for a scripted ground station (`ground_url`,
 `companion.sim.ardupilot_mission`), or none. Where the machine allows it (`unshare`, user
 namespaces), the autopilot runs in a private network namespace, so the UDP port it always opens
 for RC input is reachable from nowhere; several instances (`instance`, `-I`) run side by side.
+`stop` sends SIGTERM, then SIGKILL after `STOP_TIMEOUT_S`, and closes every descriptor it opened;
+if this process dies first, the kernel kills the autopilot (`setpriv --pdeathsig`).
 """
 
 from __future__ import annotations
@@ -205,6 +207,7 @@ class ArduPlaneSitl:
         self.workdir = Path(workdir) if workdir is not None else None
         self.isolate_network = isolate_network
         self.proc: subprocess.Popen[bytes] | None = None
+        self._cmd: list[str] = []
         self.companion_cable: PtyCable | None = None
         self.ground_cable: PtyCable | None = None
         self.started_at = 0.0
@@ -244,6 +247,11 @@ class ArduPlaneSitl:
                "--serial1", serial1, "--serial2", "none"]
         if self.home is not None:
             cmd += ["--home", self.home]
+        # The autopilot dies with us, even when we are killed: the kernel signals it when the
+        # thread that started it ends, so only the main thread (which lasts as long as the process)
+        # asks for it. After unshare, whose change of credentials would clear it.
+        if threading.current_thread() is threading.main_thread() and shutil.which("setpriv"):
+            cmd = ["setpriv", "--pdeathsig", "KILL", *cmd]
         isolate = self.isolate_network
         if isolate is None:
             isolate = network_namespaces()
@@ -267,7 +275,7 @@ class ArduPlaneSitl:
             self.companion_cable = PtyCable(f"serial0-{self.instance}")
             if self.ground:
                 self.ground_cable = PtyCable(f"serial1-{self.instance}")
-            cmd = self.command()
+            cmd = self._cmd = self.command()
             log.info("starting %s", " ".join(cmd))
             with open(self.output_path, "wb") as out:
                 self.started_at = time.monotonic()
@@ -294,7 +302,7 @@ class ArduPlaneSitl:
                        else f"did not open its serial ports within {OPEN_TIMEOUT_S:g} s")
                 last = (text.strip().splitlines() or ["(no output)"])[-1]
                 raise SitlError(f"ArduPlane SITL {why}: {last.strip()[:200]} "
-                                f"(command: {' '.join(self.command())})")
+                                f"(command: {' '.join(self._cmd)})")
             time.sleep(0.02)
 
     def output(self) -> str:

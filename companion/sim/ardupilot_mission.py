@@ -36,7 +36,9 @@ ARDUPLANE_MODES = {"MANUAL": 0, "CIRCLE": 1, "STABILIZE": 2, "FBWA": 5, "FBWB": 
 READY_EKF_FLAGS = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_POS_HORIZ_ABS
                    | mavlink.EKF_POS_VERT_ABS)
 STREAM_RATE_HZ = 10
-"""Telemetry rate asked of the autopilot on the ground link (simulated time)."""
+"""Telemetry rate asked of the autopilot on the ground link (simulated time), up to a speed-up
+of `STREAM_SPEEDUP`."""
+STREAM_SPEEDUP = 10.0
 TAKEOFF_ALT_M = 80.0
 CIRCUIT_HALF_SIDE_M = 400.0
 HOST_FLOOR_S = 10.0
@@ -191,7 +193,11 @@ class ArduPlaneGround:
     def wait_heartbeat(self) -> None:
         self.wait("heartbeat", HEARTBEAT_SIM_S, lambda: self.report.mode >= 0)
 
-    def request_streams(self, rate_hz: int = STREAM_RATE_HZ) -> None:
+    def request_streams(self) -> None:
+        """Every stream at `STREAM_RATE_HZ`, divided beyond a speed-up of 10 so that the host
+        gets no more messages a second than it parses."""
+        rate_hz = max(1, round(STREAM_RATE_HZ * STREAM_SPEEDUP / max(self.speedup,
+                                                                     STREAM_SPEEDUP)))
         self.conn.mav.request_data_stream_send(self.target_system, 1, mavlink.MAV_DATA_STREAM_ALL,
                                                rate_hz, 1)
 
@@ -209,7 +215,7 @@ class ArduPlaneGround:
 
     def upload(self, items: list[mavlink.MAVLink_mission_item_int_message]) -> None:
         """The mission upload protocol: MISSION_COUNT, one MISSION_ITEM_INT per request (either
-        request message), until MISSION_ACK."""
+        request message), until the MISSION_ACK that ends it."""
         acked: list[int] = []
         requested = False
 
@@ -229,7 +235,10 @@ class ArduPlaneGround:
                                            f"{len(items)}")
                     self.conn.mav.send(items[req.seq])
             ack = self._last.pop("MISSION_ACK", None)
-            if ack is not None and requested:
+            # ArduPilot answers an item that crossed its own repeated request with an
+            # INVALID_SEQUENCE ack and goes on asking: only another ack ends the upload
+            if (ack is not None and requested
+                    and ack.type != mavlink.MAV_MISSION_INVALID_SEQUENCE):
                 acked.append(ack.type)
             return bool(acked)
 
