@@ -8,6 +8,18 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
+# Peer programs beside the checkout (a real ArduPlane SITL, mavlink-router): their absolute paths
+# go to the tests and benchmarks when the files exist there; a value from the environment wins.
+# Without them the tests that need them are deselected, with one line saying how many and why.
+ARDUPILOT_SITL ?= $(abspath $(wildcard ../shared/tools/ardupilot/arduplane))
+MAVLINK_ROUTER ?= $(abspath $(wildcard ../shared/tools/mavlink-router/mavlink-routerd))
+ifneq ($(ARDUPILOT_SITL),)
+export ARDUPILOT_SITL
+endif
+ifneq ($(MAVLINK_ROUTER),)
+export MAVLINK_ROUTER
+endif
+
 .PHONY: run test lint bench bench-quick bench-faults bench-soak docs clean
 
 $(STAMP): pyproject.toml

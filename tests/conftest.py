@@ -45,8 +45,61 @@ def _fds() -> set[int]:
         os.close(fd)
 
 
+# Peer programs the repository does not hold (a real autopilot, a MAVLink router): tests marked
+# with one of these markers run only when the environment variable names an executable file (`make
+# test` and .ci/run set them from the sibling tools directory when it is there; README: "Testing
+# against a real autopilot"). Without it they are deselected, with one line saying how many and
+# why: never a silent skip, and never a download.
+PEER_TOOLS = {
+    "sitl": ("ARDUPILOT_SITL", "the ArduPlane SITL"),
+    "router": ("MAVLINK_ROUTER", "mavlink-router"),
+}
+
+
+def peer_tool(marker: str) -> str | None:
+    """The path the marker's environment variable names, when it is an executable file."""
+    value = os.environ.get(PEER_TOOLS[marker][0], "")
+    return value if value and os.path.isfile(value) and os.access(value, os.X_OK) else None
+
+
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "allow_leaks: the test knowingly leaves threads behind")
+    for marker, (var, what) in PEER_TOOLS.items():
+        config.addinivalue_line("markers", f"{marker}: needs {what} ({var}=PATH)")
+
+
+_deselected_for: dict[str, int] = {}
+
+
+@pytest.hookimpl(trylast=True)  # after -k and -m: count only what would have run
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    _deselected_for.clear()
+    missing = [marker for marker in PEER_TOOLS if peer_tool(marker) is None]
+    if not missing:
+        return
+    keep, drop = [], []
+    for item in items:
+        lacking = [m for m in missing if item.get_closest_marker(m) is not None]
+        if lacking:
+            drop.append(item)
+            _deselected_for[lacking[0]] = _deselected_for.get(lacking[0], 0) + 1
+        else:
+            keep.append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
+
+
+def pytest_report_collectionfinish(config: pytest.Config) -> list[str]:
+    lines = []
+    for marker, count in _deselected_for.items():
+        var, what = PEER_TOOLS[marker]
+        need, were = ("test needs", "was") if count == 1 else ("tests need", "were")
+        value = os.environ.get(var, "")
+        wrong = f"; {var}={value!r} is not an executable file" if value else ""
+        lines.append(f"{count} {need} {what} and {were} deselected: set {var}=PATH "
+                     f"(see README: Testing against a real autopilot){wrong}")
+    return lines
 
 
 @pytest.fixture(autouse=True)

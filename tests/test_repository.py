@@ -44,6 +44,31 @@ def test_the_check_finds_machine_paths_and_sibling_directories(tmp_path: Path) -
     assert not any(line.startswith(("a.py:2", "c.bin")) for line in lines)
 
 
+def test_only_ci_and_the_makefile_may_name_the_peer_tools(tmp_path: Path) -> None:
+    """`.ci/run` and the Makefile may point at the peer programs beside the checkout (a real
+    autopilot's SITL); any other file may not, and those two may name nothing else outside."""
+    repo = tmp_path / "r"
+    (repo / ".ci").mkdir(parents=True)
+    _git(repo, "init", "-q")
+    tools = "../" + "sha" + "red/tools/ardupilot/arduplane"  # split: see above
+    specs = "../" + "sha" + "red/specs/x.md"
+    home = "/" + "home/alice/tools/arduplane"
+    (repo / ".ci" / "run").write_text(f'sitl="$here/{tools}"\nspec="{specs}"\n')
+    (repo / "Makefile").write_text(f"ARDUPILOT_SITL ?= $(wildcard {tools})\nX := {home}\n")
+    (repo / "README.md").write_text(f"run `{tools}`\n")
+    (repo / "tests").mkdir()
+    (repo / "tests" / "Makefile").write_text(f"S := {tools}\n")  # only the root Makefile
+    _git(repo, "add", ".")
+    result = _check(repo)
+    assert result.returncode == 1
+    lines = result.stderr.splitlines()
+    assert not any(line.startswith((".ci/run:1:", "Makefile:1:")) for line in lines)
+    assert any(line.startswith(".ci/run:2: path to a sibling directory") for line in lines)
+    assert any(line.startswith("Makefile:2: absolute path of a machine") for line in lines)
+    assert any(line.startswith("README.md:1: path to a sibling directory") for line in lines)
+    assert any(line.startswith("tests/Makefile:1: path to a sibling directory") for line in lines)
+
+
 def test_the_data_the_tests_read_is_in_the_repository() -> None:
     tracked = subprocess.run(["git", "-C", str(REPO), "ls-files", "tests/data"],
                              capture_output=True, text=True, check=True, timeout=60).stdout.split()
