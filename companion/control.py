@@ -193,8 +193,9 @@ class ControlThread(ManagedThread):
         else:
             aileron = elevator = rudder = 0.0
             throttle = pilot_throttle
+        yaw_sp = self._hdg_sp_rad if mode == MODE_HEADING_ALT else est.yaw_rad
         out = ControlOutput(self.ctx.clock.realtime_ns(), aileron, elevator, rudder, throttle,
-                            active, MODE_NAMES.get(mode, "?"))
+                            active, MODE_NAMES.get(mode, "?"), roll_sp, pitch_sp, yaw_sp)
         self.ctx.state.control.write(out)
         if self.tlog is not None:
             self.tlog.log(FMT_CONTROL, mode, int(active), aileron, elevator, rudder, throttle,

@@ -30,6 +30,10 @@ class ImuSample:
     accel_m_s2: Vec3
     gyro_ok: bool = True
     accel_ok: bool = True
+    counter_period_s: float = 0.01
+    """What one step of `counter` is in time (the thesis IMU counts its 10 ms frames), so a
+    sample's period is counted, not measured; 0: no such counter (an autopilot's IMU at the
+    rate its stream gives), the period is the difference of the samples' times."""
 
 
 @fast_frozen
@@ -135,6 +139,11 @@ class ControlOutput:
     throttle: float
     enabled: bool  # the control law is active (parameter on and pilot engaged automatic mode)
     mode: str = "off"
+    roll_sp_rad: float = 0.0
+    """The attitude the law flies to (what a flight controller is asked to hold in GUIDED,
+    where the surfaces above are its business)."""
+    pitch_sp_rad: float = 0.0
+    yaw_sp_rad: float = 0.0
 
 
 @fast_frozen

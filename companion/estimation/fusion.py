@@ -152,7 +152,7 @@ class EstimatorCore:
         if m is None:
             return samples
         return [ImuSample(s.t_ns, s.counter, _turned(m, s.rates_rad_s), _turned(m, s.accel_m_s2),
-                          s.gyro_ok, s.accel_ok) for s in samples]
+                          s.gyro_ok, s.accel_ok, s.counter_period_s) for s in samples]
 
     def new_filter(self, moving: bool) -> Eskf:
         p = self.p
@@ -237,6 +237,8 @@ class EstimatorCore:
             return False
         need = max(1, int(self.p["INIT_S"] / IMU_PERIOD_S))
         for s in self._to_body(samples):
+            if s.counter_period_s == 0.0:
+                self.dt_source = "time"  # a source without a frame counter (an autopilot's IMU)
             if not self._enough_init(need):
                 if self._first_t_ns is None:
                     self._first_t_ns = s.t_ns
@@ -289,6 +291,10 @@ class EstimatorCore:
         last: ImuSample | None = None
         rates = self.last_rates_rad_s
         for s in samples:
+            if not by_time and s.counter_period_s == 0.0:
+                self.dt_source = "time"
+                by_time = True
+                self._last_t_ns = last.t_ns if last is not None else self._last_t_ns
             if by_time:
                 dt = IMU_PERIOD_S if self._last_t_ns is None else (s.t_ns - self._last_t_ns) / 1e9
                 self._last_t_ns = s.t_ns

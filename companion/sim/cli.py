@@ -55,6 +55,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             except ValueError as exc:
                 print(f"companion sim: {exc}", file=sys.stderr)
                 return 2
+    if args.autopilot:
+        return _with_autopilot(args)
     if args.campaign is not None:
         return _campaign(args)
     if args.vehicles > 1:
@@ -108,6 +110,35 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"companion sim: thread {summary['escalated']} failed and escalated "
               f"(exit {EXIT_ESCALATED})", file=sys.stderr)
         return EXIT_ESCALATED
+    return 0
+
+
+def _with_autopilot(args: argparse.Namespace) -> int:
+    """``companion sim --autopilot arduplane``: the real autopilot flies, the companion beside
+    it (companion.sim.autopilot_flight); the JSBSim world and its options are not used."""
+    from companion.cli_common import config_from_args, print_summary
+    from companion.sim.ardupilot import SitlError
+    from companion.sim.autopilot_flight import AutopilotSimOptions, run_with_arduplane
+
+    if args.lockstep or args.campaign is not None:
+        print("companion sim: --autopilot flies on the autopilot's own clock: it takes neither "
+              "--lockstep nor --campaign", file=sys.stderr)
+        return 2
+    cfg = config_from_args(args)
+    if not args.legacy_dest and not _configured(args, "legacy.dest"):
+        cfg.legacy.dest = "127.0.0.1:5501"
+    if not _configured(args, "legacy.bind"):
+        cfg.legacy.bind = "127.0.0.1"
+    speed = args.speed if args.speed else 1.0
+    try:
+        options = AutopilotSimOptions(binary=args.autopilot_binary,
+                                      defaults=args.autopilot_defaults, speedup=speed,
+                                      mode=args.autopilot_mode)
+        summary = run_with_arduplane(cfg, options, args.duration)
+    except (SitlError, ValueError) as exc:
+        print(f"companion sim: {exc}", file=sys.stderr)
+        return 2
+    print_summary(summary, args.json)
     return 0
 
 
@@ -213,6 +244,18 @@ def add_commands(sub: argparse._SubParsersAction,
                         "again), e.g. to try the gyro calibration `companion estimation "
                         "calibration` took from its last flight")
     p.add_argument("--aircraft", default="c172p", help="JSBSim model: c172p (default) or j3cub")
+    p.add_argument("--autopilot", choices=["arduplane"],
+                   help="fly beside a real autopilot: ArduPilot's ArduPlane SITL, linked to the "
+                        "companion as a TELEM cable (docs/autopilot.md); --speed is its speed-up")
+    p.add_argument("--autopilot-binary", metavar="PATH",
+                   help="the ArduPlane SITL program (default: $ARDUPILOT_SITL); nothing is "
+                        "downloaded")
+    p.add_argument("--autopilot-defaults", metavar="FILE",
+                   help="ArduPilot's default parameter file for the model (default: plane.parm "
+                        "beside the binary)")
+    p.add_argument("--autopilot-mode", choices=["auto", "guided"], default="auto",
+                   help="auto: the autopilot flies its circuit; guided: after the take-off, the "
+                        "companion's control law flies through it (SET_ATTITUDE_TARGET)")
     p.add_argument("--vehicles", type=int, default=1, help="fly K aircraft (ids 1..K)")
     p.add_argument("--mavlink-port-step", type=int, default=0, metavar="N",
                    help="with --vehicles: aircraft i uses each UDP/TCP MAVLink endpoint's port "

@@ -75,6 +75,11 @@ FMT_TSYNC = 1
 FMT_ESTIMATE = 2
 FMT_HEARTBEAT = 3
 FMT_RATES = 4
+FMT_COMMAND = 5
+
+CONTROL_FRESH_S = 0.1
+"""A control output older than this is not sent: the autopilot's own timeout takes over."""
+_IGNORE_BODY_RATES = 0b00000111  # SET_ATTITUDE_TARGET type_mask: fly the attitude, not rates
 
 RECV_TIMEOUT_S = 0.05
 REQUEST_EVERY_S = 5.0
@@ -155,7 +160,11 @@ class AutopilotLink(ManagedThread):
         self.c: dict[str, int] = dict.fromkeys((
             "frames", "bad_frames", "undecodable", "bytes_in", "frames_out", "tx_failed", "heartbeats",
             "foreign_frames", "system_changes", "reboots", "requests", "acks_refused",
-            "imu_samples", "gps_fixes", "estimates", "truth_samples", "time_syncs"), 0)
+            "imu_samples", "gps_fixes", "estimates", "truth_samples", "time_syncs",
+            "attitude_targets"), 0)
+        self._next_command_ns = 0
+        self._unix_minus_boot_ns: int | None = None
+        self._last_stamp_ns = 0
 
     @classmethod
     def from_row(cls, task: Task, settings: DeviceConfig | None) -> Self:
@@ -181,6 +190,9 @@ class AutopilotLink(ManagedThread):
                       "Period of the TIMESYNC round trips that map the autopilot's clock."),
             int_param(f"{prefix}_SYSID", 0, 0, 255, "",
                       "System id of the autopilot to follow; 0: the first one heard."),
+            int_param(f"{prefix}_CMD_HZ", 25, 1, 100, "Hz",
+                      "Most attitude targets a second sent to the autopilot in GUIDED "
+                      "(SET_ATTITUDE_TARGET from the control law; ArduPlane holds each about 3 s)."),
             int_param(f"{prefix}_DSTREAM", 1, 0, 1, "",
                       "1: when an ArduPilot refuses SET_MESSAGE_INTERVAL, ask with "
                       "REQUEST_DATA_STREAM instead, which sets that port's SRn_* stream rates "
@@ -199,6 +211,8 @@ class AutopilotLink(ManagedThread):
                     ["system", "component", "autopilot", "type", "base_mode", "custom_mode",
                      "system_status"])
         tlog.define(FMT_RATES, "%u,%.2f", ["msg_id", "rate_hz"])
+        tlog.define(FMT_COMMAND, "%.4f,%.4f,%.4f,%.3f,%hhu",
+                    ["roll_sp_rad", "pitch_sp_rad", "yaw_sp_rad", "thrust", "guided"])
 
     def open_log(self) -> None:
         """Its own log, and the logs of the slots it fills, each in the layout of the thesis
@@ -273,8 +287,31 @@ class AutopilotLink(ManagedThread):
                 transport.accept_peer(peer, True)
                 published += self._frame(frame, arrival_ns)
         self.c["bad_frames"] = self._splitter.bad_crc
+        self._command_attitude(clock.realtime_ns())
         self._send_queued()
         return published
+
+    def _command_attitude(self, now_ns: int) -> None:
+        """The control law's attitude, as SET_ATTITUDE_TARGET, while the autopilot is in the
+        mode a companion flies in (ArduPlane's GUIDED, PX4's OFFBOARD) and the law is engaged
+        with a fresh output. Nothing is sent otherwise: the pilot's or ground's mode change,
+        or a control thread that stopped, hands the aircraft back to the autopilot (GUIDED
+        holds the last target about 3 s, then its own guided behaviour)."""
+        ident = self.identity
+        if ident is None or not self.guided or now_ns < self._next_command_ns:
+            return
+        out = self.ctx.state.control.read()
+        if out is None or not out.enabled or now_ns - out.t_ns > CONTROL_FRESH_S * 1e9:
+            return
+        self._next_command_ns = now_ns + int(1e9 / max(1, int(self.param("CMD_HZ"))))
+        q = _quat_from_euler(out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad)
+        boot_ms = int(max(0, now_ns - self.sync.estimate().offset_ns) / 1e6) & 0xFFFFFFFF
+        self._send(self._out.set_attitude_target_encode(
+            boot_ms, ident.system, ident.component, _IGNORE_BODY_RATES, q, 0.0, 0.0, 0.0,
+            float(min(max(out.throttle, 0.0), 1.0))))
+        self.c["attitude_targets"] += 1
+        self._log(None, FMT_COMMAND, out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad,
+                  out.throttle, 1, t_ns=now_ns)
 
     def _send_queued(self) -> None:
         transport = self.transport
@@ -321,12 +358,20 @@ class AutopilotLink(ManagedThread):
             return 0
         self._arrived[msg_id] = self._arrived.get(msg_id, 0) + 1
         stamp = message_time_ns(msg)
+        if stamp is None and kind in ("GPS_RAW_INT", "GPS2_RAW"):
+            stamp = self._gps_boot_ns(msg)
         if stamp is not None:
             resets = self.sync.resets
             self.sync.observe_stamp(stamp, arrival_ns)
             if self.sync.resets != resets:
                 self._rebooted("its clock went back")
             t_ns = self.sync.map_or(stamp, arrival_ns)
+            if kind != "GPS_RAW_INT":
+                self._last_stamp_ns = t_ns
+        elif kind == "SIMSTATE" and self._last_stamp_ns:
+            # SIMSTATE carries no time: ArduPilot sends it in the same group as ATTITUDE, right
+            # after it, so it is the simulator's state at that message's time
+            t_ns = self._last_stamp_ns
         else:
             t_ns = arrival_ns
         if kind in IMU_MESSAGES:
@@ -345,6 +390,9 @@ class AutopilotLink(ManagedThread):
             self._servo(t_ns)
         elif kind == "SIMSTATE":
             self._truth(msg, t_ns)
+        elif kind == "SYSTEM_TIME" and msg.time_unix_usec > 0:
+            # UNIX time against boot time: how a GPS fix's own time (UNIX) is mapped
+            self._unix_minus_boot_ns = msg.time_unix_usec * 1000 - msg.time_boot_ms * 1_000_000
         elif kind == "TIMESYNC":
             self._timesync(msg, arrival_ns)
         elif kind == "COMMAND_ACK" and msg.result != apm.MAV_RESULT_ACCEPTED:
@@ -360,6 +408,15 @@ class AutopilotLink(ManagedThread):
                             "until it reboots (AP_DSTREAM 0 stops this)", key="dstream")
                 self._requests_again()
         return 0
+
+    def _gps_boot_ns(self, msg: Any) -> int | None:
+        """A GPS fix's UNIX time stamp on the autopilot's boot clock (through SYSTEM_TIME), so
+        the fix is dated when the receiver measured it, not when the stream sent it."""
+        usec = int(msg.time_usec)
+        if self._unix_minus_boot_ns is None or usec < 10**15:
+            return None
+        boot_ns = usec * 1000 - self._unix_minus_boot_ns
+        return boot_ns if boot_ns > 0 else None
 
     def _is_autopilot(self, src: tuple[int, int]) -> bool:
         ident = self.identity
@@ -547,6 +604,15 @@ class AutopilotLink(ManagedThread):
         tlog = self.tlog if name is None else self._logs.get(name)
         if tlog is not None:
             tlog.log(fmt, *values, t_ns=t_ns)
+
+
+def _quat_from_euler(roll: float, pitch: float, yaw: float) -> list[float]:
+    """ZYX Euler angles (rad) as MAVLink's quaternion (w, x, y, z)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]
 
 
 def _define_gps(tlog: Any) -> None:

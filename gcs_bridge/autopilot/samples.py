@@ -7,6 +7,9 @@ HIGHRES_IMU (SI floats) and SCALED_IMU* are used. MAVLink's body frame is forwar
 as the runtime's, and an accelerometer's reading is the specific force (about -9.8 m/s^2 on z at
 rest), as `ImuSample` carries it.
 
+An autopilot's IMU has no frame counter of fixed period, so its samples say so
+(`counter_period_s = 0`) and the estimator integrates over the differences of their times.
+
 Each converter takes the message and the runtime time at which it was measured (mapped from the
 message's own stamp by `ClockSync`) and returns a frozen sample, or None when the message says
 it has nothing (a GPS without a fix still gives a `GpsFix` with `fix = 0`; a HIGHRES_IMU whose
@@ -74,14 +77,14 @@ def imu_sample(msg: Any, firmware: str, t_ns: int, counter: int) -> ImuSample | 
         if msg.fields_updated & _HIGHRES_GYRO_ACC != _HIGHRES_GYRO_ACC:
             return None
         return ImuSample(t_ns, counter & 0xFF, (msg.xgyro, msg.ygyro, msg.zgyro),
-                         (msg.xacc, msg.yacc, msg.zacc))
+                         (msg.xacc, msg.yacc, msg.zacc), counter_period_s=0.0)
     if kind == "RAW_IMU" and firmware == Firmware.PX4:
         return None  # raw counts: PX4 does not send their scale
     if kind in IMU_MESSAGES:
         acc = G_M_S2 / 1000.0
         return ImuSample(t_ns, counter & 0xFF,
                          (msg.xgyro / 1000.0, msg.ygyro / 1000.0, msg.zgyro / 1000.0),
-                         (msg.xacc * acc, msg.yacc * acc, msg.zacc * acc))
+                         (msg.xacc * acc, msg.yacc * acc, msg.zacc * acc), counter_period_s=0.0)
     return None
 
 
@@ -130,11 +133,15 @@ def gps_fix(msg: Any, t_ns: int) -> GpsFix:
 def servo_state(rc: Any | None, outputs: Any | None, t_ns: int, seq: int, guided: bool,
                 throttle_channel: int = 2) -> ServoState:
     """RC_CHANNELS (the pilot's sticks, us) and SERVO_OUTPUT_RAW (what the autopilot drives,
-    us) as one exchange; `guided`: the autopilot is in the mode the companion flies in."""
+    us) as one exchange; `guided`: the autopilot is in the mode the companion flies in (what
+    the control law engages on, as the thesis aircraft's mode switch). `pilot_throttle` is the
+    throttle the aircraft flies at when the law engages: the autopilot's throttle output."""
     pilot = tuple(int(getattr(rc, f"chan{i}_raw", 0)) for i in range(1, 9)) if rc else (0,) * 8
     computer = (tuple(int(getattr(outputs, f"servo{i}_raw", 0)) for i in range(1, 9))
                 if outputs else (0,) * 8)
-    throttle_us = pilot[throttle_channel]
+    # the throttle the aircraft flies at: the autopilot's own output (in AUTO the pilot's stick
+    # may sit at idle while the autopilot flies), else the pilot's stick
+    throttle_us = computer[throttle_channel] or pilot[throttle_channel]
     throttle = min(max((throttle_us - 1000) / 1000.0, 0.0), 1.0) if throttle_us else 0.0
     failsafe = rc is None or getattr(rc, "rssi", 255) == 0
     return ServoState(t_ns, seq & 0xFF, pilot, computer, guided, guided, failsafe, 0, 0,
