@@ -46,7 +46,8 @@ class AutopilotSimOptions:
     """What `companion sim --autopilot` adds to a runtime configuration."""
 
     def __init__(self, *, binary: str | None = None, defaults: str | None = None,
-                 speedup: float = 1.0, mode: str = "auto", instance: int = 0) -> None:
+                 speedup: float = 1.0, mode: str = "auto", instance: int = 0,
+                 sysid: int | None = None) -> None:
         if mode not in AUTOPILOT_MODES:
             raise ValueError(f"--autopilot-mode {mode!r}: one of {', '.join(AUTOPILOT_MODES)}")
         self.binary = binary
@@ -54,6 +55,7 @@ class AutopilotSimOptions:
         self.speedup = speedup
         self.mode = mode
         self.instance = instance
+        self.sysid = sysid
 
 
 def run_with_arduplane(cfg: Config, sim: AutopilotSimOptions, duration_s: float, *,
@@ -62,7 +64,7 @@ def run_with_arduplane(cfg: Config, sim: AutopilotSimOptions, duration_s: float,
     """Fly the companion beside ArduPlane SITL for `duration_s` simulated seconds; the runtime's
     summary with the autopilot's report (`summary["autopilot_sitl"]`)."""
     with ArduPlaneSitl(sim.binary, speedup=sim.speedup, defaults=sim.defaults,
-                       instance=sim.instance) as sitl:
+                       instance=sim.instance, sysid=sim.sysid) as sitl:
         apply_device_ports(cfg, {"autopilot": sitl.companion_url})
         rt = Runtime(cfg, RuntimeOptions(
             clock=Clock(sim.speedup),

@@ -55,15 +55,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
             except ValueError as exc:
                 print(f"companion sim: {exc}", file=sys.stderr)
                 return 2
-    if args.autopilot:
-        return _with_autopilot(args)
-    if args.campaign is not None:
+    if args.campaign is not None and not args.autopilot:
         return _campaign(args)
     if args.vehicles > 1:
         argv = [a for a in sys.argv[1:]]
         base = _strip(argv, ("--vehicles", "--mavlink-port-step"), takes_value=True)
         return run_fleet(base, args.vehicles, args.legacy_listen or 5500,
                          mavlink_port_step=args.mavlink_port_step)
+    if args.autopilot:
+        return _with_autopilot(args)
     cfg = config_from_args(args)
     if args.horizon_camera != "off" and not args.lockstep and not cfg.legacy.enabled:
         print(f"companion sim: {CAMERA_NEEDS_LEGACY}", file=sys.stderr)
@@ -131,9 +131,12 @@ def _with_autopilot(args: argparse.Namespace) -> int:
         cfg.legacy.bind = "127.0.0.1"
     speed = args.speed if args.speed else 1.0
     try:
+        # in a fleet (--vehicles K) aircraft i is its own SITL instance (-I i-1, its own ports)
+        # with the system id of its vehicle id
         options = AutopilotSimOptions(binary=args.autopilot_binary,
                                       defaults=args.autopilot_defaults, speedup=speed,
-                                      mode=args.autopilot_mode)
+                                      mode=args.autopilot_mode, instance=args.seed_offset,
+                                      sysid=cfg.vehicle.id)
         summary = run_with_arduplane(cfg, options, args.duration)
     except (SitlError, ValueError) as exc:
         print(f"companion sim: {exc}", file=sys.stderr)

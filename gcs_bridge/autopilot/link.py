@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 from typing import Any, Self
 
 from pymavlink.dialects.v20 import ardupilotmega as apm
@@ -280,7 +281,9 @@ class AutopilotLink(ManagedThread):
         clock = self.ctx.clock
         self._housekeeping(clock.realtime_ns())
         published = 0
-        for peer, data in transport.recv(RECV_TIMEOUT_S):
+        chunks = transport.recv(RECV_TIMEOUT_S)
+        self.work_t0_ns = time.perf_counter_ns()  # the step's time excludes the wait
+        for peer, data in chunks:
             arrival_ns = clock.realtime_ns()
             self.c["bytes_in"] += len(data)
             for frame in self._splitter.feed(data):
