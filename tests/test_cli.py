@@ -63,12 +63,13 @@ def test_config_file_and_overrides(tmp_path: Path) -> None:
         apply_override(cfg, "devices.imu.speed=9600")
     with pytest.raises(ConfigError, match="must be int"):
         apply_override(cfg, "vehicle.id=seven")
-    with pytest.raises(ConfigError, match=r"unknown setting 'devices.baro' \(known: imu, gps, servo\)"):
+    with pytest.raises(ConfigError, match=r"unknown setting 'devices.baro' "
+                                          r"\(known: imu, gps, servo, autopilot\)"):
         apply_override(cfg, "devices.baro.port=/dev/ttyS9")
     baro = tmp_path / "baro.toml"
     baro.write_text('[devices.baro]\nport = "/dev/ttyS9"\n')
     with pytest.raises(ConfigError, match=r"baro.toml: unknown device 'devices.baro' "
-                                          r"\(known: imu, gps, servo\)"):
+                                          r"\(known: imu, gps, servo, autopilot\)"):
         load_vehicle_config(baro)
     bad = tmp_path / "bad.toml"
     bad.write_text("[vehicle]\nidd = 3\n")

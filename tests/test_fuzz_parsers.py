@@ -835,7 +835,7 @@ def test_config_toml_ish_text_gives_config_or_config_error(tmp_path: Path, text:
     except ConfigError as exc:
         _check_config_error(exc, path, text)
         return
-    assert set(cfg.devices) == {"imu", "gps", "servo"}  # the vehicle's, never another name
+    assert set(cfg.devices) == {"imu", "gps", "servo", "autopilot"}  # the vehicle's, no other
     for section in fields(cfg):
         obj = getattr(cfg, section.name)
         for sub in (list(obj.values()) if isinstance(obj, dict) else [obj]):

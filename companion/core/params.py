@@ -87,6 +87,13 @@ class ParamSpec:
             for v in (self.default, self.min, self.max):
                 if int(v) != v or not INT32_MIN <= v <= INT32_MAX:
                     raise ValueError(f"parameter {self.name}: {v} is not an int32")
+        else:
+            # a value has one form whatever its source: the float32 it is stored and sent as.
+            # A default kept as the Python float it was written as (0.015) would differ from
+            # the same value read back from a parameter file or a ground station
+            # (0.015000001), and a flight on defaults from one on a saved file.
+            for attr in ("default", "min", "max"):
+                object.__setattr__(self, attr, to_float32(float(getattr(self, attr))))
 
     @property
     def group(self) -> str:
