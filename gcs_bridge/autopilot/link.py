@@ -361,16 +361,20 @@ class AutopilotLink(ManagedThread):
             return 0
         self._arrived[msg_id] = self._arrived.get(msg_id, 0) + 1
         stamp = message_time_ns(msg)
-        if stamp is None and kind in ("GPS_RAW_INT", "GPS2_RAW"):
+        gps = kind in ("GPS_RAW_INT", "GPS2_RAW")
+        if stamp is None and gps:
             stamp = self._gps_boot_ns(msg)
-        if stamp is not None:
+        if stamp is not None and gps:
+            # a fix's own time is older than the message that carries it (the receiver's
+            # lag): it is mapped, but neither anchors the clock map nor tells a reboot
+            t_ns = self.sync.map_or(stamp, arrival_ns)
+        elif stamp is not None:
             resets = self.sync.resets
             self.sync.observe_stamp(stamp, arrival_ns)
             if self.sync.resets != resets:
                 self._rebooted("its clock went back")
             t_ns = self.sync.map_or(stamp, arrival_ns)
-            if kind != "GPS_RAW_INT":
-                self._last_stamp_ns = t_ns
+            self._last_stamp_ns = t_ns
         elif kind == "SIMSTATE" and self._last_stamp_ns:
             # SIMSTATE carries no time: ArduPilot sends it in the same group as ATTITUDE, right
             # after it, so it is the simulator's state at that message's time
@@ -413,8 +417,9 @@ class AutopilotLink(ManagedThread):
         return 0
 
     def _gps_boot_ns(self, msg: Any) -> int | None:
-        """A GPS fix's UNIX time stamp on the autopilot's boot clock (through SYSTEM_TIME), so
-        the fix is dated when the receiver measured it, not when the stream sent it."""
+        """A GPS fix stamped in UNIX time, on the autopilot's boot clock (through SYSTEM_TIME),
+        so the fix is dated when the receiver measured it, not when the stream sent it
+        (ArduPilot stamps GPS_RAW_INT with the fix's boot time, which needs no mapping)."""
         usec = int(msg.time_usec)
         if self._unix_minus_boot_ns is None or usec < 10**15:
             return None

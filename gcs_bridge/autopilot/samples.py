@@ -64,8 +64,10 @@ def message_time_ns(msg: Any) -> int | None:
     if boot_ms is not None:
         return int(boot_ms) * 1_000_000
     usec = getattr(msg, "time_usec", None)
-    # ArduPilot stamps GPS_RAW_INT with UNIX time once it has one: not the boot clock
-    if usec is not None and 0 < usec < 10**14 and msg.get_type() != "GPS_RAW_INT":
+    # a time_usec may be either clock (MAVLink allows both): below 10^14 us (three years of
+    # uptime) it is the boot clock (ArduPilot's GPS_RAW_INT: the fix's own time), above it UNIX
+    # time, which `AutopilotLink` maps through SYSTEM_TIME
+    if usec is not None and 0 < usec < 10**14:
         return int(usec) * 1000
     return None
 
