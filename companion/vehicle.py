@@ -55,6 +55,9 @@ class Row:
     """``module:Class`` of the SITL simulator that feeds the device (see
     `companion.sim.plugins.DeviceSimulator`). Empty: the world simulates it itself (the thesis
     devices, whose timing is the world's) or nothing does."""
+    replay: bool = True
+    """A device whose raw bytes `companion drivers replay` plays through its driver (a
+    `SerialDevice`); False for a source that is not one (the autopilot's MAVLink link)."""
     switch: str = ""
     """The `RuntimeOptions` flag that leaves this row out (``estimator``, ``control``); empty:
     the row runs whenever it is enabled."""
@@ -217,7 +220,7 @@ VEHICLE = VehicleTable((
              implementation="gcs_bridge.autopilot.link:AutopilotLink",
              publishes=("imu", "imu_slow", "gps", "servo", "autopilot", "truth")),
         "MAVLink link to a flight controller (ArduPilot, PX4): its IMU, GPS, RC, outputs and "
-        "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False)),
+        "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False), replay=False),
 ))
 """The thesis aircraft (IMU, GPS and servo board on serial ports, the estimator, the control
 law) and, switched on by a URL, the link to a flight controller beside which it flies."""

@@ -63,7 +63,9 @@ def test_install_writes_a_verified_unit_a_config_and_a_data_directory(tmp_path: 
     # every rule is commented out until the user fills in the devices' serial numbers
     rules = (prefix / "etc/udev/rules.d/99-companion.rules").read_text().splitlines()
     assert all(line.startswith("#") for line in rules)
-    assert sum("SYMLINK+=" in line for line in rules) == 3
+    # one stable name per device of the vehicle's table (the autopilot's TELEM adapter too)
+    assert sum("SYMLINK+=" in line for line in rules) == 4
+    assert any("companion-autopilot" in line for line in rules)
     analyze = shutil.which("systemd-analyze")
     if analyze is None:
         pytest.skip("systemd-analyze is not on this machine: the unit was not verified")

@@ -38,7 +38,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="feed a raw device capture through the real driver")
-    p.add_argument("kind", choices=[row.name for row in VEHICLE.devices()])
+    p.add_argument("kind", choices=[row.name for row in VEHICLE.devices() if row.replay])
     p.add_argument("file", type=Path, help="raw bytes as the device sent them")
     p.add_argument("--json", action="store_true", help="print the counter summary as JSON too")
     p.set_defaults(func=cmd_replay)

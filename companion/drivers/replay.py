@@ -29,7 +29,7 @@ from companion.drivers.servo_protocol import PilotFrame
 from companion.vehicle import VEHICLE
 from companion.watchdog import RuntimeContext, ThreadManager
 
-KINDS = tuple(row.name for row in VEHICLE.devices())
+KINDS = tuple(row.name for row in VEHICLE.devices() if row.replay)
 
 
 def item_to_json(item: object) -> dict[str, Any]:
