@@ -172,12 +172,13 @@ def test_the_scripted_mission_takes_off_and_turns() -> None:
         return r.max_relative_alt_m > 40.0 and r.max_true_roll_deg > 15.0
 
     t0 = time.monotonic()
-    report = fly_with_arduplane(peer_tool("sitl"), speedup=10, duration_s=300.0,
+    # at 5x, not faster: a loaded machine keeps a 10x autopilot from its simulated time
+    report = fly_with_arduplane(peer_tool("sitl"), speedup=5, duration_s=300.0,
                                 until=climbed_and_turned)
     host_s = time.monotonic() - t0
     assert report.armed and report.mode == ARDUPLANE_MODES["AUTO"], report
     assert climbed_and_turned(report), report
     assert "Mission: 1 Takeoff" in report.statustexts
-    print(f"SITL x10: steps {report.steps_s} (host s), {report.sim_s:.1f} s simulated, "
+    print(f"SITL x5: steps {report.steps_s} (host s), {report.sim_s:.1f} s simulated, "
           f"{host_s:.1f} s in all")
-    assert host_s < 90.0
+    assert host_s < 150.0
