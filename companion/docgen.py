@@ -44,17 +44,27 @@ def render(reg: ParamRegistry) -> str:
     return "\n".join(lines)
 
 
+def reference() -> str:
+    """The page for a vehicle with every row of its table switched on (the autopilot link's
+    `AP_*` parameters are documented although the thesis aircraft has no autopilot)."""
+    from companion.runtime import declared_registry
+    from companion.vehicle import VEHICLE, fill_device_defaults
+
+    cfg = fill_device_defaults(Config(), VEHICLE)
+    for settings in cfg.devices.values():
+        settings.enabled = True
+    return render(declared_registry(cfg))
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
-
-    from companion.runtime import declared_registry
 
     ap = argparse.ArgumentParser(prog="python -m companion.docgen",
                                  description="Write the parameter reference (docs/parameters.md) "
                                              "from every parameter's metadata.")
     ap.add_argument("output", nargs="?", type=Path, help="file to write (default: stdout)")
     args = ap.parse_args(sys.argv[1:] if argv is None else argv)
-    text = render(declared_registry(Config()))
+    text = reference()
     if args.output is None:
         sys.stdout.write(text)
         return 0
