@@ -193,7 +193,7 @@ class AutopilotLink(ManagedThread):
                       "System id of the autopilot to follow; 0: the first one heard."),
             int_param(f"{prefix}_CMD_HZ", 25, 1, 100, "Hz",
                       "Most attitude targets a second sent to the autopilot in GUIDED "
-                      "(SET_ATTITUDE_TARGET from the control law; ArduPlane holds each about 3 s)."),
+                      "(SET_ATTITUDE_TARGET from the control law; ArduPlane holds each a few seconds)."),
             int_param(f"{prefix}_DSTREAM", 1, 0, 1, "",
                       "1: when an ArduPilot refuses SET_MESSAGE_INTERVAL, ask with "
                       "REQUEST_DATA_STREAM instead, which sets that port's SRn_* stream rates "
