@@ -19,6 +19,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from companion.core.mathutil import wrap_pi
+
 FloatArray = NDArray[np.float64]
 
 GRAVITY_M_S2 = 9.80665
@@ -146,12 +148,6 @@ def skew(v: ArrayLike) -> FloatArray:
     """Cross-product matrix: ``skew(a) @ b == cross(a, b)``."""
     x, y, z = (float(c) for c in np.asarray(v, dtype=float).reshape(3))
     return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
-
-
-def wrap_pi(angle_rad: ArrayLike) -> FloatArray:
-    """Wrap angles into ``[-pi, pi)``."""
-    a = np.asarray(angle_rad, dtype=float)
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def inclination_error_rad(q_est: ArrayLike, q_true: ArrayLike) -> FloatArray:
