@@ -7,12 +7,14 @@ import hashlib
 import sys
 from pathlib import Path
 
-from gcs_bridge.signing import KeyFileError, new_key_file, read_key_file
-
 DEFAULT_KEY_FILE = Path.home() / ".uav-companion" / "mavlink.key"
 
 
 def cmd_keys_new(args: argparse.Namespace) -> int:
+    # imported here: every `companion` command builds this parser, and pymavlink (which the
+    # signing module's dialect loads) is for the commands that use it
+    from gcs_bridge.signing import KeyFileError, new_key_file
+
     path = Path(args.file)
     try:
         passphrase = new_key_file(path, force=args.force)
@@ -30,6 +32,8 @@ def cmd_keys_new(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_show(args: argparse.Namespace) -> int:
+    from gcs_bridge.signing import KeyFileError, read_key_file
+
     path = Path(args.file)
     try:
         key, passphrase = read_key_file(path)

@@ -14,7 +14,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from horizon.camera import CameraError, CameraModel
 from horizon.detector import DEFAULT_METHOD, create_detector, method_names
 
 # The main CLI imports this module for every `companion ...` command: the outputs and frame
@@ -22,6 +21,7 @@ from horizon.detector import DEFAULT_METHOD, create_detector, method_names
 if TYPE_CHECKING:
     import numpy as np
 
+    from horizon.camera import CameraModel
     from horizon.estimate import HorizonEstimate
     from horizon.sources import Frame
 
@@ -107,6 +107,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
 
 
 def _camera(args: argparse.Namespace, frame_size: tuple[int, int] | None) -> CameraModel | None:
+    from horizon.camera import CameraModel
+
     if args.camera:
         return CameraModel.load(args.camera)
     if args.hfov_deg is not None:
@@ -161,6 +163,7 @@ def _fail(message: str) -> int:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
+    from horizon.camera import CameraError, CameraModel
     from horizon.output import CsvSink, OutputError, OverlayFrames, OverlayVideo, draw_overlay
     from horizon.sources import FrameSourceError, iter_frames, parse_input
 
@@ -220,6 +223,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
 def _cmd_stream(args: argparse.Namespace) -> int:
     import threading
 
+    from horizon.camera import CameraError, CameraModel
     from horizon.output import CsvSink, OutputError
     from horizon.sources import FrameSourceError, iter_frames, parse_input
     from horizon.stream import LegacyHorizonSender, MavlinkHorizonSender, Sender, run_stream

@@ -7,13 +7,14 @@ and one table row.
 from __future__ import annotations
 
 import importlib
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-import numpy as np
-from numpy.typing import NDArray
+if TYPE_CHECKING:  # the table is read by every `companion` command's parser: no numpy for it
+    import numpy as np
+    from numpy.typing import NDArray
 
-from horizon.camera import CameraModel
-from horizon.estimate import HorizonEstimate
+    from horizon.camera import CameraModel
+    from horizon.estimate import HorizonEstimate
 
 __all__ = ["Detector", "METHODS", "DEFAULT_METHOD", "create_detector", "detect", "method_names"]
 
@@ -59,6 +60,8 @@ def detect(
     frame: NDArray[np.uint8], method: str = DEFAULT_METHOD, camera: CameraModel | None = None
 ) -> HorizonEstimate:
     """Find the horizon in one BGR (or grey) frame, with no memory of earlier frames."""
+    import numpy as np
+
     if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.ndim not in (2, 3):
         raise ValueError("frame must be a uint8 numpy array of shape (h, w) or (h, w, 3)")
     if frame.ndim == 3 and frame.shape[2] != 3:

@@ -10,17 +10,18 @@ station (MAVSDK in particular) handles reliably.
 
 from __future__ import annotations
 
+import decimal
 import enum
 import logging
 import math
+import numbers
 import re
+import struct
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from companion.core.files import atomic_write_text
 
@@ -47,16 +48,36 @@ class ParamType(enum.Enum):
 ParamValue = int | float
 
 
+_FLOAT32 = struct.Struct("<f")
+
+
 def to_float32(value: float) -> float:
-    """Round a Python float to the nearest float32, the precision the parameter really has."""
-    return float(np.float32(value))
+    """Round a Python float to the nearest float32, the precision the parameter really has
+    (as numpy's cast does; done with `struct` so that reading parameters imports no numpy)."""
+    try:
+        result: float = _FLOAT32.unpack(_FLOAT32.pack(value))[0]
+    except OverflowError:  # finite but beyond float32: numpy's cast gives infinity too
+        return math.copysign(math.inf, value)
+    return result
 
 
 def format_value(ptype: ParamType, value: ParamValue) -> str:
-    """Shortest text that reads back to the same int32 / float32."""
+    """Shortest text that reads back to the same int32 / float32, positional, trailing zeros
+    trimmed (what numpy's ``format_float_positional(unique=True, trim="-")`` prints)."""
     if ptype is ParamType.INT32:
         return str(int(value))
-    return np.format_float_positional(np.float32(value), unique=True, trim="-")
+    v = to_float32(float(value))
+    if not math.isfinite(v):
+        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf")
+    text = repr(v)
+    for digits in range(1, 10):  # nine significant digits always read back a float32
+        text = f"{v:.{digits}g}"
+        if to_float32(float(text)) == v:
+            break
+    positional = format(decimal.Decimal(text), "f")
+    if "." in positional:
+        positional = positional.rstrip("0").rstrip(".")
+    return positional
 
 
 @dataclass(frozen=True)
@@ -101,7 +122,7 @@ class ParamSpec:
 
     def validate(self, value: object) -> ParamValue:
         """Coerce `value` to this parameter's type or raise `ParamError` saying why not."""
-        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise ParamError(self.name, f"wrong type: expected {self.ptype.value}, got {value!r}",
                              ParamErrorKind.WRONG_TYPE)
         v = float(value)
