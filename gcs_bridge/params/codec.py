@@ -27,6 +27,10 @@ T_REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
 _INT_FORMATS = {
     T_UINT8: "<B", T_INT8: "<b", T_UINT16: "<H", T_INT16: "<h", T_UINT32: "<I", T_INT32: "<i",
 }
+_INT_RANGES = {
+    T_UINT8: (0, 0xFF), T_INT8: (-0x80, 0x7F), T_UINT16: (0, 0xFFFF), T_INT16: (-0x8000, 0x7FFF),
+    T_UINT32: (0, 0xFFFFFFFF), T_INT32: (-0x80000000, 0x7FFFFFFF),
+}
 _TYPE_NAMES = {
     T_UINT8: "uint8", T_INT8: "int8", T_UINT16: "uint16", T_INT16: "int16", T_UINT32: "uint32",
     T_INT32: "int32", mavlink.MAV_PARAM_TYPE_UINT64: "uint64", mavlink.MAV_PARAM_TYPE_INT64: "int64",
@@ -60,21 +64,40 @@ def decode(raw: bytes, mav_type: int, *, bytewise: bool) -> int | float:
 
     Integer types are read bytewise or through the float, as the identity dictates; REAL32 is
     a float either way (and may still be an integral value for an int32 parameter, which the
-    registry then accepts). 64-bit types cannot travel in 4 bytes.
+    registry then accepts). 64-bit types cannot travel in 4 bytes. Strict: a bytewise integer
+    whose unused bytes are neither zero nor its sign's extension, a cast integer that is not
+    finite, integral and within its type, and a NaN or infinite REAL32 are refused, so garbage
+    never becomes a legal value.
     """
     if len(raw) != 4:
         raise WireValueError(f"value field has {len(raw)} bytes, expected 4")
+    name = type_name(mav_type)
     if mav_type == T_REAL32:
-        return float(struct.unpack("<f", raw)[0])
+        f = float(struct.unpack("<f", raw)[0])
+        if not math.isfinite(f):
+            raise WireValueError(f"value {f!r} (real32) is not a finite number")
+        return f
     if mav_type in _INT_FORMATS:
+        fmt = _INT_FORMATS[mav_type]
+        size = struct.calcsize(fmt)
         if bytewise:
-            fmt = _INT_FORMATS[mav_type]
-            return int(struct.unpack(fmt, raw[: struct.calcsize(fmt)])[0])
+            value = int(struct.unpack(fmt, raw[:size])[0])
+            # the bytes the type does not use are zero, or the sign's extension: anything else
+            # is not a value of that type (a float's bits, NaN's 00 00 c0 7f among them)
+            unused = raw[size:]
+            fills = (b"\x00", b"\xff") if fmt.islower() and value < 0 else (b"\x00",)
+            if all(unused != fill * len(unused) for fill in fills):
+                raise WireValueError(f"wrong type: bytes {raw.hex(' ')} are not a {name} "
+                                     f"(its unused bytes are {unused.hex(' ')})")
+            return value
         f = float(struct.unpack("<f", raw)[0])
         if not math.isfinite(f) or f != int(f):
-            raise WireValueError(f"wrong type: {f!r} sent as {type_name(mav_type)} is not an integer")
+            raise WireValueError(f"wrong type: {f!r} sent as {name} is not an integer")
+        lo, hi = _INT_RANGES[mav_type]
+        if not lo <= f <= hi:
+            raise WireValueError(f"wrong type: {f:.0f} does not fit a {name}")
         return int(f)
-    raise WireValueError(f"wrong type: {type_name(mav_type)} is not supported (int32 or real32)")
+    raise WireValueError(f"wrong type: {name} is not supported (int32 or real32)")
 
 
 def type_matches(spec: ParamSpec, mav_type: int) -> bool:
