@@ -26,6 +26,7 @@ from gcs_bridge import status
 from gcs_bridge.autopilot.link import COMPANION_COMPONENT, RX_QUEUE, TX_QUEUE, AutopilotLink
 from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
+from gcs_bridge.dialect import mavlink
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.link import Link
 from gcs_bridge.link_threads import (
@@ -181,6 +182,8 @@ class MavlinkBridge:
         self._last_change = 0.0
         self._unsubscribe = ctx.params.subscribe(self._on_param_changed)
         manager.on_tick.append(self._persist_params)
+        self._ids_checked = autopilot is None
+        manager.on_tick.append(self._check_system_id)
         self._closed = False
 
     # ------------------------------------------------------------------ fan-out
@@ -215,6 +218,24 @@ class MavlinkBridge:
             self.ctx.params.flush()
         except OSError as exc:
             log.error("could not save parameters: %s", exc)
+
+    def _check_system_id(self) -> None:
+        """Manager tick hook: once the autopilot has said its system id, say (once) when the
+        configuration's differs. Until then the companion spoke as the configured system, and
+        a client that heard it first may keep a second, phantom system (MAVSDK does)."""
+        if self._ids_checked:
+            return
+        ap = self.core.autopilot
+        ident = ap.identity if ap is not None else None
+        if ident is None:
+            return
+        self._ids_checked = True
+        if int(ident.system) != int(self.ctx.vehicle_id):
+            text = (f"autopilot is system {ident.system}, [vehicle] id is {self.ctx.vehicle_id}:"
+                    f" set id = {ident.system}")
+            log.warning("MAVLink: %s (the companion speaks as the autopilot's system; before "
+                        "it was heard, as the configured one)", text)
+            self.broadcast_text(int(mavlink.MAV_SEVERITY_NOTICE), text)
 
     def _current_flight(self) -> Path | None:
         return None if self.ctx.flight_dir is None else Path(self.ctx.flight_dir)
@@ -265,10 +286,11 @@ class MavlinkBridge:
         self._unsubscribe()
         for link in self.links:
             link.services.close()
-        try:
-            self.manager.on_tick.remove(self._persist_params)
-        except ValueError:
-            pass
+        for hook in (self._persist_params, self._check_system_id):
+            try:
+                self.manager.on_tick.remove(hook)
+            except ValueError:
+                pass
         if self._first_unsaved:
             self._first_unsaved = 0.0
             try:

@@ -222,6 +222,9 @@ def test_the_ground_sees_the_autopilot_and_the_companion_as_two_components(rig: 
     sources = {(f.src_system, f.src_component) for f, _m in rig.gcs_a.since(0)}
     assert sources <= {AP, US, (VEHICLE_ID, 191), GCS_B}, sources  # B: its HEARTBEAT
     assert not any(src[1] == 1 and src[0] == VEHICLE_ID for src in sources)
+    # the configured id differs from the autopilot's: the ground is told once
+    assert wait_for(lambda: [m for m in rig.gcs_a.received("STATUSTEXT", US)
+                             if "autopilot is system 1, [vehicle] id is 7" in m.text], 5.0)
     # the vehicle's telemetry is the autopilot's: the companion sends none of it by default
     assert not [m for m in rig.gcs_a.received(src=US)
                 if m.get_type() in ("ATTITUDE", "GLOBAL_POSITION_INT", "SYS_STATUS", "VFR_HUD")]
