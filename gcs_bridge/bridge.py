@@ -14,6 +14,7 @@ autopilot link's own connection and routes nothing (the companion behind the use
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -53,6 +54,7 @@ from gcs_bridge.transports.shared import SharedTransport
 
 log = logging.getLogger(__name__)
 
+HEARTBEAT_ID = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
 MAX_LINKS = 10  # thread parameter prefixes MAV<n>RX / MAV<n>TX have room for one digit
 PERSIST_QUIET_S = 0.2  # parameters are saved once changes pause this long...
 PERSIST_MAX_DELAY_S = 2.0  # ...or at the latest this long after the first unsaved change
@@ -152,6 +154,9 @@ class MavlinkBridge:
             if ep.kind == "autopilot":
                 transport = SharedTransport(ep, ctx.state.queue(RX_QUEUE),
                                             ctx.state.queue(TX_QUEUE))
+                # the autopilot link beats for the companion on this connection already: a
+                # second HEARTBEAT of the same component would interleave its sequence numbers
+                ep = dataclasses.replace(ep, rates_hz={HEARTBEAT_ID: 0.0, **ep.rates_hz})
             link = Link(index, ep, self.core, self.dispatcher, self.params, policy,
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,

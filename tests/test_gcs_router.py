@@ -40,14 +40,15 @@ class UdpPeer:
 
     def __init__(self, sysid: int, compid: int,
                  answer: Callable[[UdpPeer, Any], None] | None = None,
-                 heartbeat: Any = None) -> None:
+                 heartbeat: Any = None, to_port: int | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
         self.mav = apm.MAVLink(None, sysid, compid)
         self.answer = answer
         self.heartbeat = heartbeat
-        self.addr: tuple[str, int] | None = None
+        # `to_port`: a server that waits to be spoken to (mavlink-router's UDP endpoints)
+        self.addr: tuple[str, int] | None = ("127.0.0.1", to_port) if to_port else None
         self.frames: list[tuple[Frame, Any]] = []
         self._lock = threading.Lock()
         self._decoder = apm.MAVLink(None)
@@ -77,7 +78,9 @@ class UdpPeer:
                 self.send(self.heartbeat)
 
     def send(self, msg: Any) -> bytes:
-        return self.send_bytes(bytes(msg.pack(self.mav)))
+        data = bytes(msg.pack(self.mav))
+        self.mav.seq = (self.mav.seq + 1) & 0xFF  # pack() leaves the sequence where it is
+        return self.send_bytes(data)
 
     def send_bytes(self, data: bytes) -> bytes:
         assert self.addr is not None
@@ -350,3 +353,14 @@ def test_without_an_autopilot_the_bridge_is_the_vehicle_as_before(tmp_path: Path
     assert (beat.get_srcSystem(), beat.get_srcComponent()) == (VEHICLE_ID, 1)
     assert (beat.type, beat.autopilot) == (apm.MAV_TYPE_FIXED_WING, apm.MAV_AUTOPILOT_GENERIC)
     assert "routed_dropped" not in rt.bridges[0].stats()[0]
+
+
+def test_an_autopilot_endpoint_needs_an_autopilot(tmp_path: Path) -> None:
+    from gcs_bridge.transports.endpoints import EndpointError
+
+    cfg = fill_device_defaults(Config(), VEHICLE)
+    cfg.logs.dir = str(tmp_path / "flights")
+    cfg.params.file = str(tmp_path / "params.parm")
+    cfg.mavlink.endpoints = ["autopilot:"]
+    with pytest.raises(EndpointError, match="--autopilot URL"):
+        Runtime(cfg, RuntimeOptions(legacy=False, control=False, estimator=False))
