@@ -78,6 +78,14 @@ def _enabled(thread: ManagedThread) -> bool:
         return True
 
 
+def _wake(autopilot: object) -> None:
+    """End the autopilot link's read wait, so it sends what the router queued for it now (its
+    transport's `wake`, safe from any thread; nothing for a link without one)."""
+    transport = getattr(autopilot, "transport", None)
+    if transport is not None:
+        transport.wake()
+
+
 def declared_params(n_links: int) -> list[ParamSpec]:
     """The bridge's parameters with `n_links` endpoints, without building it (docs)."""
     specs = list(BRIDGE_PARAMS)
@@ -175,7 +183,8 @@ class MavlinkBridge:
                      ", unsigned reads accepted" if policy.signing and unsigned_reads else "")
         self.router: Router | None = None
         if autopilot is not None and not shared:
-            self.router = Router(self.core, self.links, ctx.state.queue(TX_QUEUE))
+            self.router = Router(self.core, self.links, ctx.state.queue(TX_QUEUE),
+                                 wake_autopilot=lambda: _wake(autopilot))
             for link in self.links:
                 link.router = self.router
             route_thread = RouterThread(self.router, ctx.state.queue(RX_QUEUE))

@@ -30,7 +30,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -99,10 +99,14 @@ class Router:
     """The routing table and the forwarding decisions, shared by every link's thread."""
 
     def __init__(self, core: BridgeCore, links: Sequence[RoutedLink],
-                 to_autopilot: MessageQueue[Any]) -> None:
+                 to_autopilot: MessageQueue[Any],
+                 wake_autopilot: Callable[[], None] | None = None) -> None:
         self.core = core
         self.links = {link.index: link for link in links}
         self.to_autopilot = to_autopilot
+        self.wake_autopilot = wake_autopilot
+        """Called after a frame is queued for the autopilot: the autopilot link sends its queue
+        between two reads, so without it a frame waits for the end of the link's read wait."""
         self.autopilot = RouteCounters()
         self._routes: OrderedDict[tuple[int, int], set[int]] = OrderedDict()
         self._lock = threading.Lock()
@@ -187,6 +191,8 @@ class Router:
                 self.to_autopilot.put(data)
                 with self._lock:
                     self.autopilot.forwarded_out += 1
+                if self.wake_autopilot is not None:
+                    self.wake_autopilot()
                 continue
             link = self.links[key]
             ok = link.post(data)
