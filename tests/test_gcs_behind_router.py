@@ -11,7 +11,6 @@ autopilot link and the companion's component, mavlink-router routes, the compani
 from __future__ import annotations
 
 import subprocess
-import threading
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,11 +18,16 @@ from pathlib import Path
 import pytest
 from conftest import free_udp_port, peer_tool, wait_for
 from pymavlink.dialects.v20 import ardupilotmega as apm
-from test_gcs_router import AP, GCS_A, US, UdpPeer, autopilot_answers, settle
-
-from companion.core.config import Config
-from companion.runtime import Runtime, RuntimeOptions
-from companion.vehicle import VEHICLE, apply_device_ports, fill_device_defaults
+from test_gcs_router import (
+    AP,
+    GCS_A,
+    US,
+    Running,
+    UdpPeer,
+    autopilot_answers,
+    companion_config,
+    settle,
+)
 
 pytestmark = pytest.mark.router
 
@@ -59,22 +63,13 @@ class RouterRig:
                                      0, 0, apm.MAV_STATE_STANDBY, 3))
         self.gcs = UdpPeer(*GCS_A, to_port=ports["gcs"], heartbeat=apm.MAVLink_heartbeat_message(
             apm.MAV_TYPE_GCS, apm.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3))
-        cfg = fill_device_defaults(Config(), VEHICLE)
-        cfg.vehicle.id = 1
-        cfg.logs.dir = str(tmp / "flights")
-        cfg.params.file = str(tmp / "params.parm")
-        cfg.mavlink.endpoints = ["autopilot:"]
-        apply_device_ports(cfg, {"autopilot": f"udpout:127.0.0.1:{ports['companion']}"})
-        self.rt = Runtime(cfg, RuntimeOptions(legacy=False, control=False))
-        self.runner = threading.Thread(target=self.rt.run, kwargs={"handle_signals": False},
-                                       daemon=True)
-        self.runner.start()
+        self.running = Running(companion_config(
+            tmp, ["autopilot:"], f"udpout:127.0.0.1:{ports['companion']}", vehicle_id=1))
+        self.rt = self.running.rt
 
     def close(self) -> None:
         try:
-            self.rt.manager.request_stop("test")
-            self.runner.join(15.0)
-            assert not self.runner.is_alive()
+            self.running.stop()
         finally:
             for peer in (self.autopilot, self.gcs):
                 peer.close()

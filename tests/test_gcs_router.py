@@ -119,6 +119,36 @@ def autopilot_answers(peer: UdpPeer, msg: Any) -> None:
                                                   apm.MAV_PARAM_TYPE_INT32, 1, 0))
 
 
+def companion_config(tmp: Path, endpoints: list[str], autopilot_url: str | None, *,
+                     vehicle_id: int = VEHICLE_ID) -> Config:
+    """The runtime's configuration: these ground links, this autopilot (None: none)."""
+    cfg = fill_device_defaults(Config(), VEHICLE)
+    cfg.vehicle.id = vehicle_id
+    cfg.logs.dir = str(tmp / "flights")
+    cfg.params.file = str(tmp / "params.parm")
+    cfg.mavlink.endpoints = list(endpoints)
+    if autopilot_url is not None:
+        apply_device_ports(cfg, {"autopilot": autopilot_url})
+    return cfg
+
+
+class Running:
+    """A runtime built from `cfg` (no legacy protocol, no control law), run in a thread."""
+
+    def __init__(self, cfg: Config, *, params: dict[str, int] | None = None, **opts: Any) -> None:
+        self.rt = Runtime(cfg, RuntimeOptions(legacy=False, control=False, **opts))
+        for name, value in (params or {}).items():
+            self.rt.ctx.params.set(name, value)
+        self.runner = threading.Thread(target=self.rt.run, kwargs={"handle_signals": False},
+                                       daemon=True)
+        self.runner.start()
+
+    def stop(self) -> None:
+        self.rt.manager.request_stop("test")
+        self.runner.join(15.0)
+        assert not self.runner.is_alive()
+
+
 class Rig:
     def __init__(self, tmp: Path, key_file: Path | None = None) -> None:
         self.autopilot = UdpPeer(*AP, answer=autopilot_answers,
@@ -127,19 +157,13 @@ class Rig:
                                      0, 0, apm.MAV_STATE_STANDBY, 3))
         self.gcs_a = UdpPeer(*GCS_A)
         self.gcs_b = UdpPeer(*GCS_B)
-        cfg = fill_device_defaults(Config(), VEHICLE)
-        cfg.vehicle.id = VEHICLE_ID
-        cfg.logs.dir = str(tmp / "flights")
-        cfg.params.file = str(tmp / "params.parm")
-        cfg.mavlink.endpoints = [f"udpout:127.0.0.1:{self.gcs_a.port}",
-                                 f"udpout:127.0.0.1:{self.gcs_b.port}?signing=off"]
+        cfg = companion_config(tmp, [f"udpout:127.0.0.1:{self.gcs_a.port}",
+                                     f"udpout:127.0.0.1:{self.gcs_b.port}?signing=off"],
+                               f"udpout:127.0.0.1:{self.autopilot.port}")
         if key_file is not None:
             cfg.mavlink.key_file = str(key_file)
-        apply_device_ports(cfg, {"autopilot": f"udpout:127.0.0.1:{self.autopilot.port}"})
-        self.rt = Runtime(cfg, RuntimeOptions(legacy=False, control=False))
-        self.runner = threading.Thread(target=self.rt.run, kwargs={"handle_signals": False},
-                                       daemon=True)
-        self.runner.start()
+        self.running = Running(cfg)
+        self.rt = self.running.rt
 
     def ready(self) -> None:
         """Every peer has heard the companion and the companion knows the autopilot."""
@@ -161,13 +185,12 @@ class Rig:
     def stats(self, index: int) -> dict[str, Any]:
         return dict(self.bridge.stats()[index])
 
-    def close(self) -> dict[str, Any]:
-        self.rt.manager.request_stop("test")
-        self.runner.join(15.0)
-        for p in (self.autopilot, self.gcs_a, self.gcs_b):
-            p.close()
-        assert not self.runner.is_alive()
-        return self.rt.summary()
+    def close(self) -> None:
+        try:
+            self.running.stop()
+        finally:
+            for p in (self.autopilot, self.gcs_a, self.gcs_b):
+                p.close()
 
 
 @pytest.fixture(scope="module")
@@ -334,20 +357,14 @@ def test_routing_counters_are_in_the_stats_and_the_summary(rig: Rig) -> None:
 
 def test_without_an_autopilot_the_bridge_is_the_vehicle_as_before(tmp_path: Path) -> None:
     gcs = UdpPeer(*GCS_A)
-    cfg = fill_device_defaults(Config(), VEHICLE)
-    cfg.vehicle.id = VEHICLE_ID
-    cfg.logs.dir = str(tmp_path / "flights")
-    cfg.params.file = str(tmp_path / "params.parm")
-    cfg.mavlink.endpoints = [f"udpout:127.0.0.1:{gcs.port}"]
-    rt = Runtime(cfg, RuntimeOptions(legacy=False, control=False, estimator=False))
-    runner = threading.Thread(target=rt.run, kwargs={"handle_signals": False}, daemon=True)
-    runner.start()
+    running = Running(companion_config(tmp_path, [f"udpout:127.0.0.1:{gcs.port}"], None),
+                      estimator=False)
+    rt = running.rt
     try:
         assert wait_for(lambda: gcs.received("HEARTBEAT"), 10.0)
         assert rt.manager.find("mavroute") is None
     finally:
-        rt.manager.request_stop("test")
-        runner.join(15.0)
+        running.stop()
         gcs.close()
     beat = gcs.received("HEARTBEAT")[0]
     assert (beat.get_srcSystem(), beat.get_srcComponent()) == (VEHICLE_ID, 1)
@@ -358,9 +375,16 @@ def test_without_an_autopilot_the_bridge_is_the_vehicle_as_before(tmp_path: Path
 def test_an_autopilot_endpoint_needs_an_autopilot(tmp_path: Path) -> None:
     from gcs_bridge.transports.endpoints import EndpointError
 
-    cfg = fill_device_defaults(Config(), VEHICLE)
-    cfg.logs.dir = str(tmp_path / "flights")
-    cfg.params.file = str(tmp_path / "params.parm")
-    cfg.mavlink.endpoints = ["autopilot:"]
+    cfg = companion_config(tmp_path, ["autopilot:"], None)
     with pytest.raises(EndpointError, match="--autopilot URL"):
         Runtime(cfg, RuntimeOptions(legacy=False, control=False, estimator=False))
+
+
+def test_a_radio_budget_saves_up_half_a_second_and_refuses_beyond() -> None:
+    from gcs_bridge.router import ByteBudget
+
+    budget = ByteBudget(1000.0)  # bytes/s: 500 may be saved up
+    assert budget.take(280) and budget.take(200)
+    assert not budget.take(280)  # 20 left
+    budget._at_s -= 0.3  # 0.3 s later: 300 more
+    assert budget.take(280) and not budget.take(100)

@@ -21,11 +21,9 @@ from conftest import free_udp_port, quiet_mavsdk, wait_for
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as apm
 from test_gcs_mavproxy import MavProxy
+from test_gcs_router import Running, companion_config
 
-from companion.core.config import Config
-from companion.runtime import Runtime, RuntimeOptions
 from companion.sim.ardupilot import ArduPlaneSitl
-from companion.vehicle import VEHICLE, apply_device_ports, fill_device_defaults
 
 pytestmark = pytest.mark.sitl
 
@@ -41,30 +39,21 @@ class Companion:
 
     def __init__(self, tmp: Path, ground_port: int, *, vehicle_id: int = 7) -> None:
         self.sitl = ArduPlaneSitl(speedup=SPEEDUP, ground=False).start()
-        cfg = fill_device_defaults(Config(), VEHICLE)
-        cfg.vehicle.id = vehicle_id  # ArduPlane is 1: the companion takes its id once heard
-        cfg.logs.dir = str(tmp / "flights")
-        cfg.params.file = str(tmp / "params.parm")
-        cfg.mavlink.endpoints = [f"udpout:127.0.0.1:{ground_port}"]
-        apply_device_ports(cfg, {"autopilot": self.sitl.companion_url})
-        self.rt = Runtime(cfg, RuntimeOptions(legacy=False, control=False))
-        # what the autopilot link asks for is the ground's telemetry too: at speed-up 5 its
-        # defaults (IMU 50 Hz...) come at ~1900 frames/s, more than a Python client parses on
-        # a shared machine, so ask for less
-        for name, hz in STREAM_HZ.items():
-            self.rt.ctx.params.set(name, hz)
-        self.runner = threading.Thread(target=self.rt.run, kwargs={"handle_signals": False},
-                                       daemon=True)
-        self.runner.start()
+        # ArduPlane is system 1: the companion takes its id once heard. What the autopilot
+        # link asks for is the ground's telemetry too: at speed-up 5 its defaults (IMU 50 Hz...)
+        # come at ~2000 frames/s, more than a Python client parses on a shared machine, so
+        # ask for less
+        self.running = Running(companion_config(tmp, [f"udpout:127.0.0.1:{ground_port}"],
+                                                self.sitl.companion_url, vehicle_id=vehicle_id),
+                               params=STREAM_HZ)
+        self.rt = self.running.rt
 
     def stats(self) -> dict[str, Any]:
         return dict(self.rt.bridges[0].stats()[0])
 
     def close(self) -> None:
         try:
-            self.rt.manager.request_stop("test")
-            self.runner.join(15.0)
-            assert not self.runner.is_alive()
+            self.running.stop()
         finally:
             self.sitl.stop()
 
