@@ -4,10 +4,17 @@ Built once per vehicle by the runtime (`companion run` / `companion sim`, `--mav
 repeatable, or `[mavlink] endpoints`). Construction opens nothing (so a dry build for
 documentation is harmless): each link's receive and send threads are handed to the thread
 manager, which opens the link when it starts them and supervises them like any other thread.
+
+Beside a flight controller (the runtime runs an autopilot link, `--autopilot URL`) the bridge
+is the companion: component 191 of the autopilot's system (`BridgeCore.autopilot`), and the
+router (`gcs_bridge.router`) joins every ground link to the autopilot, with a thread of its own
+for the autopilot's frames. An `autopilot:` endpoint instead serves the companion on the
+autopilot link's own connection and routes nothing (the companion behind the user's router).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -15,30 +22,68 @@ from pathlib import Path
 from typing import Any
 
 from companion.core.params import ParamSpec
-from companion.watchdog import RuntimeContext, ThreadManager
+from companion.watchdog import ManagedThread, RuntimeContext, ThreadManager
 from gcs_bridge import status
+from gcs_bridge.autopilot.link import COMPANION_COMPONENT, RX_QUEUE, TX_QUEUE, AutopilotLink
 from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.commands import CommandHandler, LoggingControl
+from gcs_bridge.dialect import mavlink
 from gcs_bridge.dispatch import Dispatcher
 from gcs_bridge.link import Link
-from gcs_bridge.link_threads import LinkReceiver, LinkSender, receiver_task, sender_task
+from gcs_bridge.link_threads import (
+    LinkReceiver,
+    LinkSender,
+    RouterThread,
+    receiver_task,
+    sender_task,
+)
 from gcs_bridge.params.protocol import ParamProtocol
-from gcs_bridge.runtime_view import BridgeCore
+from gcs_bridge.router import Router
+from gcs_bridge.runtime_view import AutopilotSide, BridgeCore
 from gcs_bridge.services.link_services import LinkServices
 from gcs_bridge.services.metadata import ComponentMetadata
 from gcs_bridge.signing import LinkPolicy, read_key_file
+from gcs_bridge.transports.base import Transport
 from gcs_bridge.transports.endpoints import (
     DEFAULT_ENDPOINT,
     Endpoint,
     EndpointError,
     parse_endpoint,
 )
+from gcs_bridge.transports.shared import SharedTransport
 
 log = logging.getLogger(__name__)
 
+HEARTBEAT_ID = int(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
 MAX_LINKS = 10  # thread parameter prefixes MAV<n>RX / MAV<n>TX have room for one digit
 PERSIST_QUIET_S = 0.2  # parameters are saved once changes pause this long...
 PERSIST_MAX_DELAY_S = 2.0  # ...or at the latest this long after the first unsaved change
+
+
+def find_autopilot(manager: ThreadManager) -> AutopilotSide | None:
+    """The runtime's enabled link to a flight controller: its thread named "autopilot", or an
+    `AutopilotLink` by any name; None when it has none."""
+    for thread in manager.threads:
+        if isinstance(thread, AutopilotLink) or (thread.task.name == "autopilot"
+                                                 and hasattr(thread, "identity")):
+            if _enabled(thread):
+                return thread  # type: ignore[return-value]  # it has `identity`
+    return None
+
+
+def _enabled(thread: ManagedThread) -> bool:
+    try:
+        return bool(thread.enabled)
+    except Exception:  # its parameters are not declared (a thread outside a manager)
+        return True
+
+
+def _wake(autopilot: object) -> None:
+    """End the autopilot link's read wait, so it sends what the router queued for it now (its
+    transport's `wake`, safe from any thread; nothing for a link without one)."""
+    transport = getattr(autopilot, "transport", None)
+    if transport is not None:
+        transport.wake()
 
 
 def declared_params(n_links: int) -> list[ParamSpec]:
@@ -83,7 +128,14 @@ class MavlinkBridge:
         ctx.params.declare_all(BRIDGE_PARAMS)
         self.ctx = ctx
         self.manager = manager
-        self.core = BridgeCore(ctx, manager)
+        autopilot = find_autopilot(manager)
+        shared = any(e.kind == "autopilot" for e in parsed)
+        if shared and autopilot is None:
+            raise EndpointError(next(e.text for e in parsed if e.kind == "autopilot"),
+                                "serves the companion on the autopilot link's connection: "
+                                "give the autopilot's URL too (--autopilot URL)")
+        self.core = (BridgeCore(ctx, manager) if autopilot is None else
+                     BridgeCore(ctx, manager, compid=COMPANION_COMPONENT, autopilot=autopilot))
         self.params = ParamProtocol(self.core)
         self._tlog_recording = True
         self.commands = CommandHandler(self.core, logging_control=logging_control,
@@ -93,7 +145,7 @@ class MavlinkBridge:
         # parameter descriptions for QGC and MAVSDK, from the registry's metadata
         self.metadata = ComponentMetadata(ctx.params.specs, self.core.compid)
         self.links: list[Link] = []
-        self.threads: list[LinkReceiver | LinkSender] = []
+        self.threads: list[LinkReceiver | LinkSender | RouterThread] = []
         self._senders: list[LinkSender] = []
         # flights are served from the directory holding this one (`companion run` and `sim`
         # make one directory per flight under `[logs] dir`)
@@ -106,10 +158,18 @@ class MavlinkBridge:
             policy = LinkPolicy(key if signing_on else None, unsigned_reads)
             tlog_path = (Path(ctx.flight_dir) / f"mavlink-{index}.tlog"
                          if tlog and ctx.flight_dir is not None else None)
+            transport: Transport | None = None
+            if ep.kind == "autopilot":
+                transport = SharedTransport(ep, ctx.state.queue(RX_QUEUE),
+                                            ctx.state.queue(TX_QUEUE))
+                # the autopilot link beats for the companion on this connection already: a
+                # second HEARTBEAT of the same component would interleave its sequence numbers
+                ep = dataclasses.replace(ep, rates_hz={HEARTBEAT_ID: 0.0, **ep.rates_hz})
             link = Link(index, ep, self.core, self.dispatcher, self.params, policy,
                         events=manager.subscribe_events(), text_ids=self.text_ids,
                         tlog_path=tlog_path, tlog_enabled=self._tlog_on,
-                        broadcast_text=self.broadcast_text, tlog_service=ctx.logs)
+                        broadcast_text=self.broadcast_text, tlog_service=ctx.logs,
+                        transport=transport)
             link.services = LinkServices(link, root, self._current_flight, self.metadata)
             rx = LinkReceiver(link)  # the manager hands out the ids
             tx = LinkSender(link)
@@ -121,10 +181,23 @@ class MavlinkBridge:
             log.info("MAVLink %s: identity %s, signing %s%s", link.describe(),
                      ep.identity.value, "on" if policy.signing else "off",
                      ", unsigned reads accepted" if policy.signing and unsigned_reads else "")
+        self.router: Router | None = None
+        if autopilot is not None and not shared:
+            self.router = Router(self.core, self.links, ctx.state.queue(TX_QUEUE),
+                                 wake_autopilot=lambda: _wake(autopilot))
+            for link in self.links:
+                link.router = self.router
+            route_thread = RouterThread(self.router, ctx.state.queue(RX_QUEUE))
+            manager.add(route_thread)
+            self.threads.append(route_thread)
+            log.info("MAVLink: the companion (component %d) beside the autopilot, routing "
+                     "between it and %d link(s)", COMPANION_COMPONENT, len(self.links))
         self._first_unsaved = 0.0
         self._last_change = 0.0
         self._unsubscribe = ctx.params.subscribe(self._on_param_changed)
         manager.on_tick.append(self._persist_params)
+        self._ids_checked = autopilot is None
+        manager.on_tick.append(self._check_system_id)
         self._closed = False
 
     # ------------------------------------------------------------------ fan-out
@@ -159,6 +232,24 @@ class MavlinkBridge:
             self.ctx.params.flush()
         except OSError as exc:
             log.error("could not save parameters: %s", exc)
+
+    def _check_system_id(self) -> None:
+        """Manager tick hook: once the autopilot has said its system id, say (once) when the
+        configuration's differs. Until then the companion spoke as the configured system, and
+        a client that heard it first may keep a second, phantom system (MAVSDK does)."""
+        if self._ids_checked:
+            return
+        ap = self.core.autopilot
+        ident = ap.identity if ap is not None else None
+        if ident is None:
+            return
+        self._ids_checked = True
+        if int(ident.system) != int(self.ctx.vehicle_id):
+            text = (f"autopilot is system {ident.system}, [vehicle] id is {self.ctx.vehicle_id}:"
+                    f" set id = {ident.system}")
+            log.warning("MAVLink: %s (the companion speaks as the autopilot's system; before "
+                        "it was heard, as the configured one)", text)
+            self.broadcast_text(int(mavlink.MAV_SEVERITY_NOTICE), text)
 
     def _current_flight(self) -> Path | None:
         return None if self.ctx.flight_dir is None else Path(self.ctx.flight_dir)
@@ -197,6 +288,8 @@ class MavlinkBridge:
                 "tlog_frames": link.tlog.frames if link.tlog is not None else 0,
                 "tlog_dropped": link.tlog.dropped if link.tlog is not None else 0,
             })
+            if link.router is not None:
+                out[-1].update({f"routed_{k}": v for k, v in vars(link.routes).items()})
         return out
 
     def close(self) -> None:
@@ -207,10 +300,11 @@ class MavlinkBridge:
         self._unsubscribe()
         for link in self.links:
             link.services.close()
-        try:
-            self.manager.on_tick.remove(self._persist_params)
-        except ValueError:
-            pass
+        for hook in (self._persist_params, self._check_system_id):
+            try:
+                self.manager.on_tick.remove(hook)
+            except ValueError:
+                pass
         if self._first_unsaved:
             self._first_unsaved = 0.0
             try:

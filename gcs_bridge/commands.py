@@ -118,7 +118,10 @@ class CommandHandler:
         self._recent: OrderedDict[tuple[int, int, int, int], tuple[float, int]] = OrderedDict()
         self._recent_lock = threading.Lock()  # receive threads and the manager's replies
 
-    def handle(self, link: CommandLink, msg: RxMessage) -> None:
+    def handle(self, link: CommandLink, msg: RxMessage, *, quiet_unsupported: bool = False
+               ) -> None:
+        """`quiet_unsupported`: a command we do not support goes unacknowledged (beside an
+        autopilot, one sent to every component is the autopilot's to acknowledge)."""
         cmd = from_message(msg)
         key = (link.index, cmd.source[0], cmd.source[1], cmd.command)
         now = time.monotonic()
@@ -135,6 +138,8 @@ class CommandHandler:
             log.exception("command %d from %d/%d", cmd.command, *cmd.source)
             result = FAILED
         if result is None:  # acknowledged later, by the manager's reply
+            return
+        if result == UNSUPPORTED and quiet_unsupported:
             return
         self._remember(key, now, result)
         link.post([ack(cmd, result)])
@@ -217,8 +222,10 @@ class CommandHandler:
 
     def _reboot_shutdown(self, link: CommandLink, cmd: Command) -> int | None:
         # param1: autopilot (1 reboot, 2 shutdown); param2: onboard computer. This bridge is
-        # both, so either one asks the runtime to stop (reboot: the runtime is restarted).
-        actions = {int(v) for v in (cmd.p(1, 0.0), cmd.p(2, 0.0)) if v is not None}
+        # both, so either one asks the runtime to stop (reboot: the runtime is restarted);
+        # beside an autopilot it is the onboard computer only, and param1 is the autopilot's.
+        asked = (cmd.p(2, 0.0),) if self.core.beside_autopilot else (cmd.p(1, 0.0), cmd.p(2, 0.0))
+        actions = {int(v) for v in asked if v is not None}
         actions.discard(0)
         if not actions:
             return ACCEPTED  # "do nothing" for both is a valid request

@@ -31,9 +31,11 @@ class DispatchLink(CommandLink, Protocol):
     """The link a message arrived on, as the handlers need it (`gcs_bridge.link.Link` is one):
     the dispatcher is called by the link and answers through it without importing it."""
 
-    identity: Identity
     text_ids: status.StatusTextIds
     services: LinkServices
+
+    @property
+    def identity(self) -> Identity: ...
 
     def post_param(self, index: int) -> bool: ...
 
@@ -119,6 +121,12 @@ class Dispatcher:
         return (target_system in (0, self.core.sysid)
                 and target_component in (0, self.core.compid))
 
+    def _shared_request(self, msg: RxMessage) -> bool:
+        """Beside an autopilot, a request to every component (target component 0) that we
+        cannot serve is the autopilot's to answer: we stay silent rather than answer "no such
+        parameter" or "unsupported" before or after it."""
+        return self.core.beside_autopilot and msg.target_component == 0
+
     def _param_error(self, msg: RxMessage, name: str, index: int, error: int) -> Message:
         return mavlink.MAVLink_param_error_message(
             msg.get_srcSystem(), msg.get_srcComponent(), name.encode("ascii", "replace")[:16],
@@ -137,6 +145,8 @@ class Dispatcher:
             return
         index = self.params.lookup(msg.param_id, int(msg.param_index))
         if index is None:
+            if self._shared_request(msg):
+                return
             link.post([self._param_error(msg, msg.param_id, int(msg.param_index),
                                          mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST)])
             return
@@ -154,6 +164,8 @@ class Dispatcher:
             if outcome.changed and outcome.reason:
                 link.notify(mavlink.MAV_SEVERITY_NOTICE, f"{outcome.name}: {outcome.reason}")
             return
+        if outcome.index is None and self._shared_request(msg):
+            return  # the autopilot's parameter, not ours
         text = f"{outcome.name}: {outcome.reason}"
         log.info("link %d: refused PARAM_SET %s", link.index, text)
         # PARAM_ERROR first: a client that understands it (MAVSDK) stops at once instead of
@@ -167,7 +179,7 @@ class Dispatcher:
 
     def _command(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):
-            self.commands.handle(link, msg)
+            self.commands.handle(link, msg, quiet_unsupported=self._shared_request(msg))
 
     def _request_data_stream(self, link: DispatchLink, msg: RxMessage) -> None:
         if self._for_us(msg.target_system, msg.target_component):

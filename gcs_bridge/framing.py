@@ -53,6 +53,11 @@ class FrameSplitter:
     def reset(self) -> None:
         self._buf.clear()
 
+    @property
+    def pending(self) -> int:
+        """Bytes held back: the start of a frame not yet whole."""
+        return len(self._buf)
+
     def feed(self, data: bytes) -> list[Frame]:
         buf = self._buf
         buf += data

@@ -32,10 +32,14 @@ from gcs_bridge.bulk import BulkSender
 from gcs_bridge.dialect import (
     MSG_ID_COMPONENT_METADATA,
     MSG_ID_PROTOCOL_VERSION,
+    Identity,
     RxMessage,
     mavlink,
 )
 from gcs_bridge.dialect import Message as Msg
+from gcs_bridge.framing import Frame, FrameSplitter
+from gcs_bridge.msg_targets import COMMAND_OFFSETS, payload_u16
+from gcs_bridge.router import ByteBudget, RouteCounters, Router
 from gcs_bridge.runtime_view import BridgeCore
 from gcs_bridge.signing import LinkPolicy, SignatureChecker, is_write, signing_timestamp
 from gcs_bridge.streams import StreamScheduler, stream_for, streams_in_group
@@ -59,7 +63,8 @@ PARAM_BATCH_PAUSE_NS = 5_000_000  # host ns between MAV_PARAM_BURST-sized batche
 PEER_SILENCE_S = 5.0  # a transfer for a peer not heard from for this long is abandoned
 RADIO_BULK_SHARE = 0.8  # of what the telemetry schedule leaves of a serial line
 
-SenderItem = list[Msg] | Callable[["Link"], None]
+SenderItem = list[Msg] | Callable[["Link"], None] | bytes
+"""What the sender sends: messages, a function of the link, or a forwarded frame's bytes."""
 
 
 @dataclass(frozen=True)
@@ -88,7 +93,6 @@ class Link:
         self.events = events
         self.text_ids = text_ids
         self.transport = transport if transport is not None else make_transport(endpoint)
-        self.identity = endpoint.identity
         self.queue: MessageQueue[SenderItem] = MessageQueue(QUEUE_CAPACITY)
         self.counters = status.LinkCounters()
         self.scheduler = StreamScheduler(core, line_bytes_s=self.transport.bytes_per_s,
@@ -118,6 +122,13 @@ class Link:
         self.heard: dict[tuple[int, int], float] = {}  # peer -> last message, monotonic s
         self.signed_in = False  # whether the message being dispatched was signed and valid
         self.services: LinkServices  # set by the bridge once the link exists
+        # routing beside an autopilot (`gcs_bridge.router`): set by the bridge, else None
+        self.router: Router | None = None
+        self.routes = RouteCounters()
+        self._splitters: OrderedDict[Hashable, FrameSplitter] = OrderedDict()
+        self._local_parser = mavlink.MAVLink(None, 0, 0)
+        self._local_parser.robust_parsing = True
+        self._budget: ByteBudget | None = None
         self._pack_errors = 0
         self._initial_rates_applied = False
 
@@ -142,6 +153,12 @@ class Link:
             self.transport.close()
             if self.tlog is not None:
                 self.tlog.close()
+
+    @property
+    def identity(self) -> Identity:
+        """The link's claim (`identity=`), or beside an autopilot the encoding its firmware
+        dictates (`BridgeCore.encoding`)."""
+        return self.core.encoding(self.endpoint.identity)
 
     # ------------------------------------------------------------------ posting (any thread)
     def post(self, item: SenderItem) -> bool:
@@ -212,6 +229,7 @@ class Link:
 
     def reset_parsers(self) -> None:
         self._parsers.clear()
+        self._splitters.clear()
 
     def _parser(self, peer: Hashable) -> mavlink.MAVLink:
         parser = self._parsers.get(peer)
@@ -231,6 +249,8 @@ class Link:
         chunks = self.transport.recv(timeout_s)
         if on_data is not None:
             on_data()
+        if self.router is not None:
+            return self._receive_routed(chunks, self.router)
         for peer, data in chunks:
             parser = self._parser(peer)
             try:
@@ -281,6 +301,77 @@ class Link:
         self.dispatcher.handle(self, msg)
         return True
 
+    def _receive_routed(self, chunks: list[tuple[Hashable, bytes]], router: Router) -> int:
+        """Beside an autopilot: cut whole frames (`FrameSplitter`), apply the signing policy
+        to each, hand it to the router as bytes and dispatch the ones the companion is among
+        the destinations of."""
+        frames = 0
+        for peer, data in chunks:
+            splitter = self._splitters.get(peer)
+            if splitter is None:
+                splitter = self._splitters[peer] = FrameSplitter()
+                while len(self._splitters) > PEER_MEMORY:
+                    self._splitters.popitem(last=False)
+            bad_before = splitter.bad_crc
+            cut = splitter.feed(data)
+            self.counters.parse_errors += splitter.bad_crc - bad_before
+            if self._datagrams and splitter.pending:
+                self.counters.parse_errors += 1  # a datagram's cut frame: see `receive`
+                splitter.reset()
+            accepted = trusted = False
+            for frame in cut:
+                frames += 1
+                src = (frame.src_system, frame.src_component)
+                if src == (self.core.sysid, self.core.compid):
+                    continue  # our own frames echoed
+                self.counters.rx_frames += 1
+                why = self._frame_verdict(frame)
+                if why is not None:
+                    self._refused(src, why, self._frame_name(frame))
+                    continue
+                accepted = True
+                signed = self.signed_in
+                trusted = trusted or signed
+                self._tlog(frame.data)
+                self._note_heard(src)
+                if not router.from_ground(self.index, frame.data, frame.msg_id, src):
+                    continue
+                for msg in self._local_parser.parse_buffer(frame.data) or []:
+                    if msg.get_type() != "BAD_DATA":  # a message of another dialect: not ours
+                        self.signed_in = signed
+                        self.dispatcher.handle(self, msg)
+            if accepted:
+                self.transport.accept_peer(peer, trusted)
+        return frames
+
+    def _frame_verdict(self, frame: Frame) -> str | None:
+        """The signing policy on a frame's bytes (None: accepted; `signed_in` says whether it
+        was signed with the key). Unsigned, it passes only as a read the bridge's dialect
+        knows: a message of another dialect may change the autopilot, for all we can tell."""
+        self.signed_in = False
+        if self._checker is None:
+            return None
+        data = frame.data
+        why = self._checker.check(data) if data[0] == 0xFD and data[2] & 0x01 else "unsigned"
+        if why is None:
+            self.signed_in = True
+            return None
+        command_at = COMMAND_OFFSETS.get(frame.msg_id)
+        command = payload_u16(data, command_at) if command_at is not None else None
+        if (why == "unsigned" and self.policy.unsigned_reads
+                and frame.msg_id in mavlink.mavlink_map and not is_write(frame.msg_id, command)):
+            return None
+        return why
+
+    @staticmethod
+    def _frame_name(frame: Frame) -> str:
+        cls = mavlink.mavlink_map.get(frame.msg_id)
+        name = str(cls.msgname) if cls is not None else f"message {frame.msg_id}"
+        command_at = COMMAND_OFFSETS.get(frame.msg_id)
+        if command_at is not None:
+            name += f" {payload_u16(frame.data, command_at)}"
+        return name
+
     def _note_heard(self, src: tuple[int, int]) -> None:
         self.heard[src] = time.monotonic()
         if len(self.heard) > 4 * PEER_MEMORY:  # a flood of forged sources: keep the recent
@@ -301,23 +392,24 @@ class Link:
 
     def refuse(self, msg: RxMessage, why: str) -> None:
         """Count a refused message and report it (rate-limited); it is never acted on."""
+        what = msg.get_type()
+        if what in ("COMMAND_LONG", "COMMAND_INT"):
+            what += f" {getattr(msg, 'command', '?')}"
+        self._refused((msg.get_srcSystem(), msg.get_srcComponent()), why, what)
+
+    def _refused(self, src: tuple[int, int], why: str, what: str) -> None:
         self.counters.refused += 1
         self.refusals[why] = self.refusals.get(why, 0) + 1
         self._refused_unreported += 1
         now = time.monotonic()
-        what = msg.get_type()
-        if what in ("COMMAND_LONG", "COMMAND_INT"):
-            what += f" {getattr(msg, 'command', '?')}"
         # Reported at most once per REFUSAL_REPORT_S, in the log as on the ground: a flood of
         # refused frames must not become a flood of log lines (disk, CPU) or of STATUSTEXT.
-        log.debug("link %d: refused %s from %d/%d: %s", self.index, what, msg.get_srcSystem(),
-                  msg.get_srcComponent(), why)
+        log.debug("link %d: refused %s from %d/%d: %s", self.index, what, src[0], src[1], why)
         if now - self._last_refusal_report >= REFUSAL_REPORT_S:
             n, self._refused_unreported = self._refused_unreported, 0
             self._last_refusal_report = now
             log.warning("link %d: refused %d message(s) since the last report, the latest %s "
-                        "from %d/%d: %s", self.index, n, what, msg.get_srcSystem(),
-                        msg.get_srcComponent(), why)
+                        "from %d/%d: %s", self.index, n, what, src[0], src[1], why)
             self._broadcast_text(int(mavlink.MAV_SEVERITY_WARNING),
                                  f"link {self.index}: refused {n}: {why} {what}")
 
@@ -340,6 +432,7 @@ class Link:
     def emit(self, msgs: list[Msg]) -> None:
         """Pack and send messages (the send thread only)."""
         signing = self.mav_out.signing
+        self.mav_out.srcSystem = self.core.sysid  # beside an autopilot: its, once known
         for msg in msgs:
             if signing.sign_outgoing:
                 signing.timestamp = max(signing.timestamp, self._now_timestamp())
@@ -358,8 +451,26 @@ class Link:
     def run_item(self, item: SenderItem) -> None:
         if isinstance(item, list):
             self.emit(item)
+        elif isinstance(item, bytes):
+            self.send_forwarded(item)
         else:
             item(self)
+
+    def send_forwarded(self, frame: bytes) -> None:
+        """A frame the router forwarded onto this link, as it came (the send thread only);
+        on a radio, within MAV_RADIO_PCT of the line (else dropped and counted)."""
+        bps = self.transport.bytes_per_s
+        if bps is not None:
+            rate = bps * float(self.core.ctx.params.get("MAV_RADIO_PCT")) / 100.0
+            budget = self._budget
+            if budget is None or budget.rate_bytes_s != rate:
+                budget = self._budget = ByteBudget(rate)
+            if not budget.take(len(frame)):
+                self.routes.over_budget += 1
+                return
+        if self.transport.send(frame):
+            self.counters.tx_frames += 1
+        self._tlog(frame)
 
     def send_param(self, index: int) -> None:
         msg = self.params.value_message(index, bytewise=self.identity.bytewise)
@@ -424,6 +535,8 @@ class Link:
 
     def check_home(self) -> None:
         """Announce HOME_POSITION when the estimator's origin appears or moves."""
+        if self.core.beside_autopilot:
+            return  # the autopilot's home is the vehicle's
         home = telemetry.home_of(self.core)
         if home is not None and home != self._home_origin:
             self._home_origin = home

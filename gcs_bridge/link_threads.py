@@ -1,4 +1,4 @@
-"""The two managed threads that run a link, and their task rows.
+"""The two managed threads that run a link, the router's thread, and their task rows.
 
 `LinkReceiver` and `LinkSender` are thin shells over `gcs_bridge.link.Link`, which holds
 everything a link remembers, so a thread restarted by the watchdog carries on where it stopped.
@@ -6,16 +6,22 @@ Here is only what a thread owns: its task row (`receiver_task`, `sender_task`), 
 its bounded waits. Neither thread polls: each sleeps until there is work or a deadline, and at
 most a quarter of its watchdog period (`bounded_wait_s`), a clock duration turned into host
 seconds, so the watchdog sees cycles in each of its windows at any simulation speed.
+
+Beside an autopilot, `RouterThread` drains the frames the autopilot link received
+(`autopilot_rx`) into the router (`gcs_bridge.router`), with the same bounded waits.
 """
 
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from companion.core.clock import Clock
+from companion.core.sync import MessageQueue
 from companion.watchdog import ManagedThread, Task
 from gcs_bridge import status
 from gcs_bridge.link import ITEMS_PER_CYCLE, Link
+from gcs_bridge.router import Router
 
 WAIT_CAP_S = 0.5  # host seconds: the longest wait of either thread, whatever its watchdog
 BEATS_PER_WINDOW = 4  # a thread waits at most its watchdog period over this
@@ -152,4 +158,49 @@ def _noop(_link: Link) -> None:
     """Queued only to wake the sender."""
 
 
-__all__ = ["LinkReceiver", "LinkSender", "bounded_wait_s", "receiver_task", "sender_task"]
+def router_task() -> Task:
+    """The router's thread beside an autopilot: paced by the autopilot's frames."""
+    return Task("mavroute", paced_by="the autopilot's frames (autopilot_rx)", budget_ms=5.0,
+                watchdog_ms=1000, message_ms=5000, switchable=False,
+                implementation="gcs_bridge.link_threads:RouterThread")
+
+
+class RouterThread(ManagedThread):
+    """Hands every frame from the autopilot (`autopilot_rx`) to the router, and says in a
+    NOTICE (at most one per NOTICE_INTERVAL_S) which target was not found."""
+
+    def __init__(self, router: Router, frames: MessageQueue[Any]) -> None:
+        super().__init__(router_task())
+        self.router = router
+        self.frames = frames
+        self.routed = 0
+
+    def interrupt_io(self) -> None:
+        self.frames.put(None)  # wakes the wait at once
+
+    def step(self) -> bool:
+        item = self.frames.get(bounded_wait_s(self.ctx.clock, self.watchdog_ms))
+        self.work_t0_ns = time.perf_counter_ns()
+        handled = 0
+        while item is not None:
+            self.router.from_autopilot(*item)
+            handled += 1
+            if handled >= ITEMS_PER_CYCLE or self.stop_requested:
+                break
+            item = self.frames.get_nowait()
+        self.routed += handled
+        unrouted = self.router.take_unrouted()
+        if unrouted is not None:
+            n, latest = unrouted
+            self.notice(f"{n} frame(s) for no known system/component dropped, the latest "
+                        f"{latest}", key="noroute")
+        return True
+
+    def counters(self) -> dict[str, int]:
+        c = self.router.autopilot
+        return {"from_autopilot": self.routed, "forwarded_from_autopilot": c.forwarded_in,
+                "forwarded_to_autopilot": c.forwarded_out, "dropped_no_route": c.dropped}
+
+
+__all__ = ["LinkReceiver", "LinkSender", "RouterThread", "bounded_wait_s", "receiver_task",
+           "router_task", "sender_task"]

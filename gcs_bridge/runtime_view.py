@@ -10,9 +10,31 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from companion.watchdog import RuntimeContext, ThreadManager
-from gcs_bridge.dialect import COMPONENT_ID, clamp_int
+from gcs_bridge.dialect import COMPONENT_ID, Identity, clamp_int
+
+
+class AutopilotIds(Protocol):
+    """Who the autopilot said it is (`gcs_bridge.autopilot.link.AutopilotIdentity`)."""
+
+    @property
+    def system(self) -> int: ...
+
+    @property
+    def component(self) -> int: ...
+
+    @property
+    def firmware(self) -> str: ...
+
+
+class AutopilotSide(Protocol):
+    """The link to the flight controller as the bridge sees it (`AutopilotLink`): None until
+    its first HEARTBEAT."""
+
+    @property
+    def identity(self) -> AutopilotIds | None: ...
 
 
 @dataclass
@@ -20,6 +42,8 @@ class BridgeCore:
     ctx: RuntimeContext
     manager: ThreadManager
     compid: int = COMPONENT_ID
+    autopilot: AutopilotSide | None = None
+    """The flight controller's link when there is one: the bridge is then its companion."""
     boot_real_ns: int = 0
     boot_mono_ns: int = 0
     _cpu: tuple[float, float] = field(default=(0.0, 0.0))
@@ -30,8 +54,32 @@ class BridgeCore:
         self._cpu = (time.process_time(), time.monotonic())
 
     @property
+    def beside_autopilot(self) -> bool:
+        return self.autopilot is not None
+
+    @property
     def sysid(self) -> int:
+        """The vehicle's system id: the autopilot's once it is known, else the configured one."""
+        ap = self.autopilot
+        if ap is not None:
+            ident = ap.identity
+            if ident is not None:
+                return int(ident.system)
         return int(self.ctx.vehicle_id)
+
+    def encoding(self, claim: Identity) -> Identity:
+        """The identity whose integer encoding a link claiming `claim` uses. Beside an autopilot
+        the clients take the encoding of every component of the system from the autopilot's
+        HEARTBEAT (MAVProxy, QGroundControl, MAVSDK), so ours follows its firmware (ArduPilot:
+        C cast, PX4: bytewise); another firmware, or none heard yet, leaves the link's claim."""
+        ap = self.autopilot
+        ident = ap.identity if ap is not None else None
+        if ident is None:
+            return claim
+        try:
+            return Identity(ident.firmware)
+        except ValueError:
+            return claim
 
     def now_real_ns(self) -> int:
         return self.ctx.clock.realtime_ns()

@@ -99,7 +99,13 @@ def system_state(core: BridgeCore) -> int:
 def heartbeat(core: BridgeCore, identity: Identity = Identity.GENERIC) -> Msg:
     """The link's HEARTBEAT: the mode is said in the base mode's flags, which every client
     reads; a PX4 or ArduPilot claim adds that firmware's custom mode number for the same mode,
-    since their plugins name the mode from it."""
+    since their plugins name the mode from it. Beside an autopilot it is a companion's:
+    `MAV_TYPE_ONBOARD_CONTROLLER`, `MAV_AUTOPILOT_INVALID`, no mode (the autopilot has the
+    vehicle's), so no client takes it for the vehicle."""
+    if core.beside_autopilot:
+        return mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
+            system_state(core), 3)
     auto = autonomous(core)
     base = mavlink.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
     if auto:

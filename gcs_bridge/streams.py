@@ -57,7 +57,9 @@ class LinkSide(Protocol):
 
     index: int
     counters: status.LinkCounters
-    identity: Identity
+
+    @property
+    def identity(self) -> Identity: ...
 
     def next_thread_status(self) -> Any: ...
 
@@ -183,6 +185,10 @@ STREAMS: tuple[StreamSpec, ...] = (
                _wrap(telemetry.battery_status), (DS.MAV_DATA_STREAM_EXTENDED_STATUS,), frames=2),
 )
 STREAMS_BY_ID: dict[int, StreamSpec] = {s.msg_id: s for s in STREAMS}
+# Beside an autopilot the vehicle's telemetry is the autopilot's: by default the companion sends
+# only what is its own (its HEARTBEAT and its threads' status); the rest on request
+COMPANION_STREAMS = frozenset({mavlink.MAVLINK_MSG_ID_HEARTBEAT,
+                               mavlink.MAVLINK_MSG_ID_NAMED_VALUE_INT})
 # NAMED_VALUE_FLOAT travels with the thread status (and GPS DOPs): one interval for both
 STREAM_ALIASES = {mavlink.MAVLINK_MSG_ID_NAMED_VALUE_FLOAT: mavlink.MAVLINK_MSG_ID_NAMED_VALUE_INT}
 
@@ -347,6 +353,8 @@ class StreamScheduler:
     def _period_ms(self, st: _StreamState) -> float | None:
         if st.override_us is not None:
             return None if st.override_us < 0 else st.override_us / 1000.0
+        if self.core.beside_autopilot and st.spec.msg_id not in COMPANION_STREAMS:
+            return None
         ms = st.spec.default_ms(self.core)
         return float(ms) if ms else None
 

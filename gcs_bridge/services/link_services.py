@@ -57,11 +57,13 @@ class ServiceLink(Protocol):
 
     index: int
     core: BridgeCore
-    identity: Identity
     policy: LinkPolicy
     signed_in: bool
     text_ids: status.StatusTextIds
     bulk: BulkSender
+
+    @property
+    def identity(self) -> Identity: ...
 
     def post(self, item: list[Msg] | Callable[[ServiceLink], None]) -> bool: ...
 

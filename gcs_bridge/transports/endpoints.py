@@ -12,6 +12,10 @@ An endpoint is what `--mavlink` and `[mavlink] endpoints` take: a pymavlink conn
 - `MESSAGE_NAME=hz`: start this link with that message at that rate (0 = off), e.g.
   `ATTITUDE=10&GPS_RAW_INT=2`, so a slow radio and a fast wired link can differ.
 
+`autopilot:` is no connection of its own: the companion's component is served over the
+autopilot link's connection (`--autopilot URL`), for a companion that is one endpoint of the
+user's MAVLink router (mavlink-router, BlueOS; see docs/ground-stations.md).
+
 Settings after `?` never reach pymavlink, which has no such syntax; `?` appears in no pymavlink
 connection string, so the split is unambiguous.
 """
@@ -49,7 +53,7 @@ class Endpoint:
     """One parsed endpoint: where to connect and how this link behaves."""
 
     text: str  # as given, for messages
-    kind: str  # udpin | udpout | udpbcast | tcpin | tcp | serial
+    kind: str  # udpin | udpout | udpbcast | tcpin | tcp | serial | autopilot
     host: str = ""
     port: int = 0
     device: str = ""  # serial device path or pyserial URL
@@ -138,6 +142,8 @@ def parse_endpoint(text: str) -> Endpoint:
         if kind in ("udpout", "udpbcast", "tcp") and port == 0:
             raise EndpointError(text, "a destination port cannot be 0")
         return Endpoint(text=text, kind=kind, host=host, port=port, **common)  # type: ignore[arg-type]
+    if url in ("autopilot", "autopilot:"):  # the autopilot link's connection, shared
+        return Endpoint(text=text, kind="autopilot", **common)  # type: ignore[arg-type]
     if "://" in url:  # a pyserial URL (loop://, socket://, rfc2217://, spy://)
         return Endpoint(text=text, kind="serial", device=url, **common)  # type: ignore[arg-type]
     device, comma, baud_text = url.partition(",")
