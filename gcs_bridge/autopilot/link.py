@@ -57,6 +57,7 @@ from gcs_bridge.autopilot.samples import (
     servo_state,
     truth_sample,
 )
+from gcs_bridge.autopilot.streams import REQUEST_EVERY_S, StreamRequests
 from gcs_bridge.autopilot.timesync import ClockSync
 from gcs_bridge.framing import Frame, FrameSplitter, decoder
 from gcs_bridge.transports.base import Transport, make_transport
@@ -83,36 +84,8 @@ CONTROL_FRESH_S = 0.1
 _IGNORE_BODY_RATES = 0b00000111  # SET_ATTITUDE_TARGET type_mask: fly the attitude, not rates
 
 RECV_TIMEOUT_S = 0.05
-REQUEST_EVERY_S = 5.0
-"""A requested message that has not come is asked for again this often."""
 _ARDUPLANE_GUIDED = 15
 _PX4_OFFBOARD = 6 << 16
-
-# message id -> the parameter suffix that sets its rate (Hz); a rate of 0 asks for nothing
-_STREAMS = {
-    apm.MAVLINK_MSG_ID_RAW_IMU: "IMU_HZ",
-    apm.MAVLINK_MSG_ID_HIGHRES_IMU: "IMU_HZ",
-    apm.MAVLINK_MSG_ID_GPS_RAW_INT: "GPS_HZ",
-    apm.MAVLINK_MSG_ID_ATTITUDE: "ATT_HZ",
-    apm.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "POS_HZ",
-    apm.MAVLINK_MSG_ID_RC_CHANNELS: "RC_HZ",
-    apm.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: "RC_HZ",
-    apm.MAVLINK_MSG_ID_SYSTEM_TIME: "TIME_HZ",
-}
-
-
-# ArduPilot's stream groups (REQUEST_DATA_STREAM), for an autopilot that refuses
-# SET_MESSAGE_INTERVAL: the group that carries each message we want
-_DATA_STREAM_OF = {
-    apm.MAVLINK_MSG_ID_RAW_IMU: apm.MAV_DATA_STREAM_RAW_SENSORS,
-    apm.MAVLINK_MSG_ID_GPS_RAW_INT: apm.MAV_DATA_STREAM_EXTENDED_STATUS,
-    apm.MAVLINK_MSG_ID_RC_CHANNELS: apm.MAV_DATA_STREAM_RC_CHANNELS,
-    apm.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW: apm.MAV_DATA_STREAM_RC_CHANNELS,
-    apm.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: apm.MAV_DATA_STREAM_POSITION,
-    apm.MAVLINK_MSG_ID_ATTITUDE: apm.MAV_DATA_STREAM_EXTRA1,
-    apm.MAVLINK_MSG_ID_SYSTEM_TIME: apm.MAV_DATA_STREAM_EXTRA3,
-}
-
 
 @dataclasses.dataclass(frozen=True)
 class AutopilotIdentity:
@@ -151,10 +124,7 @@ class AutopilotLink(ManagedThread):
         self._next_heartbeat_ns = 0
         self._next_sync_ns = 0
         self._next_request_ns = 0
-        self._arrived: dict[int, int] = {}
-        self._arrived_at_request: dict[int, int] = {}
-        self._data_streams = False
-        """The autopilot refused SET_MESSAGE_INTERVAL: streams are asked by group."""
+        self.streams = StreamRequests()
         self._logs: dict[str, Any] = {}
         self._logs_begun = False
         self._last_heartbeat_ns = 0
@@ -330,7 +300,9 @@ class AutopilotLink(ManagedThread):
         transport = self.transport
         if transport is None:
             return
-        if transport.send(msg.pack(self._out)):
+        frame = msg.pack(self._out)
+        self._out.seq = (self._out.seq + 1) & 0xFF  # pack() leaves the sequence where it is
+        if transport.send(frame):
             self.c["frames_out"] += 1
         else:
             self.c["tx_failed"] += 1
@@ -359,7 +331,7 @@ class AutopilotLink(ManagedThread):
         if not self._is_autopilot(src):
             self.c["foreign_frames"] += 1
             return 0
-        self._arrived[msg_id] = self._arrived.get(msg_id, 0) + 1
+        self.streams.count(msg_id)
         stamp = message_time_ns(msg)
         gps = kind in ("GPS_RAW_INT", "GPS2_RAW")
         if stamp is None and gps:
@@ -405,11 +377,11 @@ class AutopilotLink(ManagedThread):
         elif kind == "COMMAND_ACK" and msg.result != apm.MAV_RESULT_ACCEPTED:
             self.c["acks_refused"] += 1
             log.debug("autopilot refused command %d: result %d", msg.command, msg.result)
-            if (msg.command == apm.MAV_CMD_SET_MESSAGE_INTERVAL and not self._data_streams
+            if (msg.command == apm.MAV_CMD_SET_MESSAGE_INTERVAL and not self.streams.data_streams
                     and self.identity is not None
                     and self.identity.firmware == Firmware.ARDUPILOT
                     and int(self.param("DSTREAM"))):
-                self._data_streams = True
+                self.streams.data_streams = True
                 self.notice("autopilot refuses SET_MESSAGE_INTERVAL: asking with "
                             "REQUEST_DATA_STREAM, which sets its SRn_* rates on this port "
                             "until it reboots (AP_DSTREAM 0 stops this)", key="dstream")
@@ -479,7 +451,7 @@ class AutopilotLink(ManagedThread):
 
     def _requests_again(self) -> None:
         self._next_request_ns = 0
-        self._arrived_at_request.clear()
+        self.streams.again()
 
     def _imu(self, msg: Any, kind: str, t_ns: int) -> int:
         # the most preferred IMU message that arrives at all is the only one used
@@ -576,37 +548,11 @@ class AutopilotLink(ManagedThread):
             self._request_streams(ident)
 
     def _request_streams(self, ident: AutopilotIdentity) -> None:
-        """Ask for each wanted message that has not come at half its rate since the last
-        request (the first time: every one): SET_MESSAGE_INTERVAL, or REQUEST_DATA_STREAM by
-        group once the autopilot has refused that."""
-        first = not self._arrived_at_request
-        groups: dict[int, int] = {}
-        for msg_id, suffix in _STREAMS.items():
-            if msg_id == apm.MAVLINK_MSG_ID_HIGHRES_IMU and ident.firmware != Firmware.PX4:
-                continue  # ArduPilot's IMU is RAW_IMU; HIGHRES_IMU is PX4's
-            if msg_id == apm.MAVLINK_MSG_ID_RAW_IMU and ident.firmware == Firmware.PX4:
-                continue
-            hz = int(self.param(suffix))
-            if hz <= 0:
-                continue
-            got = self._arrived.get(msg_id, 0) - self._arrived_at_request.get(msg_id, 0)
-            if not first and got >= hz * REQUEST_EVERY_S / 2:
-                continue
-            if self._data_streams:
-                group = _DATA_STREAM_OF.get(msg_id)
-                if group is not None:
-                    groups[group] = max(groups.get(group, 0), hz)
-                continue
+        for msg in self.streams.requests(self._out, ident.system, ident.component,
+                                         ident.firmware == Firmware.PX4,
+                                         lambda suffix: int(self.param(suffix))):
             self.c["requests"] += 1
-            self._send(self._out.command_long_encode(
-                ident.system, ident.component, apm.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                msg_id, 1e6 / hz, 0, 0, 0, 0, 0))
-        for group, hz in groups.items():
-            self.c["requests"] += 1
-            self._send(self._out.request_data_stream_encode(
-                ident.system, ident.component, group, hz, 1))
-        for msg_id in _STREAMS:
-            self._arrived_at_request[msg_id] = self._arrived.get(msg_id, 0)
+            self._send(msg)
 
     def _log(self, name: str | None, fmt: int, *values: float | int, t_ns: int) -> None:
         tlog = self.tlog if name is None else self._logs.get(name)
