@@ -218,7 +218,8 @@ VEHICLE = VehicleTable((
              watchdog_ms=2000, message_ms=1000, param_prefix="AP",
              restart=RestartType.TRANSIENT,
              implementation="gcs_bridge.autopilot.link:AutopilotLink",
-             publishes=("imu", "imu_slow", "gps", "servo", "autopilot", "truth")),
+             publishes=("imu", "imu_slow", "gps", "servo", "autopilot", "truth", "gps2",
+                        "battery")),
         "MAVLink link to a flight controller (ArduPilot, PX4): its IMU, GPS, RC, outputs and "
         "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False), replay=False),
 ))

@@ -364,3 +364,47 @@ def test_the_clock_map_finds_offset_drift_and_latency_from_round_trips() -> None
     sync.observe_stamp(1_000_000, truth + 10**9)
     assert sync.resets == 1 and not sync.synced
     assert sync.map_or(2_000_000, truth + 10**9) <= truth + 10**9
+
+
+def test_an_autopilot_speaking_mavlink1_with_quaternions_and_a_battery(
+        cable: Cable, tmp_path: Path) -> None:
+    """MAVLink 1 frames (an older autopilot, or a port set to MAVLink 1), its attitude as a
+    quaternion only, and its battery: all understood."""
+    import math
+
+    out = apm.MAVLink(None, srcSystem=7, srcComponent=1)
+
+    def v1(msg: Any) -> bytes:
+        frame: bytes = msg.pack(out, force_mavlink1=True)
+        out.seq = (out.seq + 1) & 0xFF
+        return frame
+
+    beat = out.heartbeat_encode(apm.MAV_TYPE_FIXED_WING, apm.MAV_AUTOPILOT_PX4, 0, 0,
+                                apm.MAV_STATE_STANDBY)
+    half = 0.3 / 2  # a 0.3 rad bank
+    frames = [v1(beat)]
+    for k in range(1, 101):
+        frames.append(v1(out.highres_imu_encode(k * 20_000, 0, 0, -9.8, 0.01, 0, 0, 0, 0, 0,
+                                                0, 0, 0, 20.0, 0b111111)))
+        frames.append(v1(out.attitude_quaternion_encode(k * 20, math.cos(half), math.sin(half),
+                                                        0, 0, 0, 0, 0)))
+    frames.append(v1(out.battery_status_encode(0, 0, 0, 32767, [4100, 4100, 4100] + [0xFFFF] * 7,
+                                               1250, 0, 0, 87)))
+    assert all(f[0] == 0xFE for f in frames)  # MAVLink 1 on the wire
+    rt, runner = start_runtime(tmp_path, cable.path)
+    try:
+        assert link_open(cable)
+        cable.write(b"".join(frames))
+        assert wait(lambda: link_counters(rt)["imu_samples"] == 100), link_counters(rt)
+        assert wait(lambda: rt.ctx.state.slot("battery").read() is not None)
+        est = rt.ctx.state.slot("autopilot").read()
+        battery = rt.ctx.state.slot("battery").read()
+        imu = rt.ctx.state.imu.read()
+    finally:
+        summary = stop(rt, runner)
+    c = {t["name"]: t for t in summary["threads"]}["autopilot"]["counters"]
+    assert c["autopilot_system"] == 7 and c["bad_frames"] == 0
+    assert est is not None and est.roll_rad == pytest.approx(0.3, abs=1e-6)
+    assert battery.voltage_v == pytest.approx(12.3) and battery.remaining_pct == 87
+    assert battery.current_a == pytest.approx(12.5)
+    assert imu is not None and imu.accel_m_s2[2] == pytest.approx(-9.8)  # PX4: SI already

@@ -49,11 +49,14 @@ from companion.watchdog.thread import ManagedThread
 from gcs_bridge.autopilot.samples import (
     IMU_MESSAGES,
     AutopilotEstimate,
+    BatterySample,
     Firmware,
+    euler_from_quat,
     gps_fix,
     imu_sample,
     imu_temperature_c,
     message_time_ns,
+    quat_from_euler_wxyz,
     servo_state,
     truth_sample,
 )
@@ -136,6 +139,7 @@ class AutopilotLink(ManagedThread):
         self._next_command_ns = 0
         self._unix_minus_boot_ns: int | None = None
         self._last_stamp_ns = 0
+        self._attitude_kind: str | None = None
 
     @classmethod
     def from_row(cls, task: Task, settings: DeviceConfig | None) -> Self:
@@ -277,7 +281,7 @@ class AutopilotLink(ManagedThread):
         if out is None or not out.enabled or now_ns - out.t_ns > CONTROL_FRESH_S * 1e9:
             return
         self._next_command_ns = now_ns + int(1e9 / max(1, int(self.param("CMD_HZ"))))
-        q = _quat_from_euler(out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad)
+        q = quat_from_euler_wxyz(out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad)
         boot_ms = int(max(0, now_ns - self.sync.estimate().offset_ns) / 1e6) & 0xFFFFFFFF
         self._send(self._out.set_attitude_target_encode(
             boot_ms, ident.system, ident.component, _IGNORE_BODY_RATES, q, 0.0, 0.0, 0.0,
@@ -360,8 +364,13 @@ class AutopilotLink(ManagedThread):
             self.ctx.state.gps.write(fix)
             self._log("gps", FMT_SOLUTION, *FIX_LAYOUT.values(fix), t_ns=t_ns)
             self.c["gps_fixes"] += 1
-        elif kind in ("ATTITUDE", "GLOBAL_POSITION_INT", "EKF_STATUS_REPORT"):
+        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT",
+                      "EKF_STATUS_REPORT"):
             self._estimate_part(msg, kind, t_ns)
+        elif kind == "GPS2_RAW":
+            self.ctx.state.slot("gps2").write(gps_fix(msg, t_ns))  # a second receiver, apart
+        elif kind == "BATTERY_STATUS":
+            self._battery(msg, t_ns)
         elif kind == "RC_CHANNELS":
             self._rc = msg
         elif kind == "SERVO_OUTPUT_RAW":
@@ -486,7 +495,16 @@ class AutopilotLink(ManagedThread):
         if kind == "EKF_STATUS_REPORT":
             est["ekf_flags"] = int(msg.flags)
             return
-        sample = AutopilotEstimate(t_ns, msg.roll, msg.pitch, msg.yaw, msg.rollspeed,
+        # ATTITUDE where it comes, else ATTITUDE_QUATERNION (one of the two, never both)
+        if self._attitude_kind is None or kind == "ATTITUDE":
+            self._attitude_kind = kind
+        if kind != self._attitude_kind:
+            return
+        if kind == "ATTITUDE":
+            roll, pitch, yaw = msg.roll, msg.pitch, msg.yaw
+        else:
+            roll, pitch, yaw = euler_from_quat(msg.q1, msg.q2, msg.q3, msg.q4)
+        sample = AutopilotEstimate(t_ns, roll, pitch, yaw, msg.rollspeed,
                                    msg.pitchspeed, msg.yawspeed, **est)
         self.ctx.state.slot("autopilot").write(sample)
         self._log(None, FMT_ESTIMATE, sample.roll_rad, sample.pitch_rad, sample.yaw_rad,
@@ -495,6 +513,13 @@ class AutopilotLink(ManagedThread):
                       sample.lat_deg, sample.lon_deg, sample.alt_m, sample.vn_m_s,
                       sample.ve_m_s, sample.vd_m_s)), sample.ekf_flags, t_ns=t_ns)
         self.c["estimates"] += 1
+
+    def _battery(self, msg: Any, t_ns: int) -> None:
+        cells = [v for v in msg.voltages if v != 0xFFFF]
+        self.ctx.state.slot("battery").write(BatterySample(
+            t_ns, int(msg.id), sum(cells) / 1000.0 if cells else None,
+            msg.current_battery / 100.0 if msg.current_battery >= 0 else None,
+            int(msg.battery_remaining) if msg.battery_remaining >= 0 else None))
 
     def _servo(self, t_ns: int) -> None:
         self._servo_seq += 1
@@ -558,15 +583,6 @@ class AutopilotLink(ManagedThread):
         tlog = self.tlog if name is None else self._logs.get(name)
         if tlog is not None:
             tlog.log(fmt, *values, t_ns=t_ns)
-
-
-def _quat_from_euler(roll: float, pitch: float, yaw: float) -> list[float]:
-    """ZYX Euler angles (rad) as MAVLink's quaternion (w, x, y, z)."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]
 
 
 def _define_gps(tlog: Any) -> None:

@@ -25,7 +25,8 @@ from typing import Any
 from companion.core.fastinit import fast_frozen
 from companion.core.state import GpsFix, ImuSample, ServoState
 
-__all__ = ["AutopilotEstimate", "Firmware", "IMU_MESSAGES", "TruthSample", "gps_fix",
+__all__ = ["AutopilotEstimate", "BatterySample", "Firmware", "euler_from_quat",
+           "quat_from_euler_wxyz", "IMU_MESSAGES", "TruthSample", "gps_fix",
            "imu_sample", "message_time_ns", "servo_state", "truth_sample"]
 
 G_M_S2 = 9.80665
@@ -173,6 +174,18 @@ class AutopilotEstimate:
 
 @fast_frozen
 @dataclass(frozen=True)
+class BatterySample:
+    """One BATTERY_STATUS: the pack's voltage, current and charge (None where not sent)."""
+
+    t_ns: int
+    battery_id: int
+    voltage_v: float | None
+    current_a: float | None
+    remaining_pct: int | None
+
+
+@fast_frozen
+@dataclass(frozen=True)
 class TruthSample:
     """A SITL's SIMSTATE: the simulator's true attitude, body rates, specific force and
     position (no velocity, no altitude: the message carries none)."""
@@ -193,3 +206,20 @@ def truth_sample(msg: Any, t_ns: int) -> TruthSample | None:
         return None
     return TruthSample(t_ns, msg.roll, msg.pitch, msg.yaw, (msg.xgyro, msg.ygyro, msg.zgyro),
                        (msg.xacc, msg.yacc, msg.zacc), msg.lat / 1e7, msg.lng / 1e7)
+
+
+def euler_from_quat(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """MAVLink's quaternion (w, x, y, z) as ZYX Euler angles (rad)."""
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_from_euler_wxyz(roll: float, pitch: float, yaw: float) -> list[float]:
+    """ZYX Euler angles (rad) as MAVLink's quaternion (w, x, y, z)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return [cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy]
