@@ -224,7 +224,7 @@ def test_every_published_slot_is_a_slot_of_the_vehicle_state() -> None:
         assert row.task.publishes, f"{row.name} publishes nothing"
         for name in row.task.publishes:  # a field of the state, or a named slot
             assert isinstance(state.slot(name), DataSlot), (row.name, name)
-    assert set(state.named) == {"autopilot", "truth"}  # the autopilot's own estimate, SIMSTATE
+    assert set(state.named) == {"autopilot", "truth", "gps2", "battery"}  # the autopilot link's
     # a kind of data the state has no field for gets a named slot, the same one every time
     assert state.slot("airspeed") is state.slot("airspeed") and "airspeed" in state.named
     assert state.slot("gps") is state.gps
