@@ -43,7 +43,8 @@ Phases, for each router in turn (warm-up until the ground station hears it, then
 - **line**: 921600 baud 8N1 = 92,160 B/s, the most a UART at that rate can deliver
   (about 2,700 frames/s), each frame written when its last byte would have arrived;
 - **bursts**: 2,000 frames written back to back as fast as the pty takes them (a USB link is
-  not held to a baud rate), then 1 s to drain, several times.
+  not held to a baud rate), then 1 s to drain, several times; its "frames/s written" is the
+  median rate within a burst, i.e. how fast the router took them off the pty.
 
 A frame's latency runs from the start of the `write` of its last byte into the pty to the
 return of the `recv` of the UDP datagram holding it (the start, not the return: the router,
@@ -107,7 +108,7 @@ its CPU goes, its figures not comparable) runs after them with --profile-ours.""
 class Recording:
     frames: list[bytes]
     patches: list[list[tuple[int, int, int]]]
-    """Per frame: (offset in the frame, size, units per ms) of each time field it carries."""
+    """Per frame: (offset in the payload, size, units per ms) of each time field it carries."""
     span_ms: int
     total_bytes: int
 
@@ -120,37 +121,43 @@ def load_recording() -> Recording:
     for data in frames:
         assert data[0] == 0xFD and not data[2] & 1, "MAVLink 2, unsigned"
         msg_id = data[7] | data[8] << 8 | data[9] << 16
-        plen = data[1]
+        payload = data[10:10 + data[1]]
         mine = []
         for name, (size, per_ms) in TIME_FIELDS.items():
             off = offsets.get(msg_id, {}).get(name)
-            if off is not None and off + size <= plen:  # a truncated (zero) field stays zero
-                mine.append((10 + off, size, per_ms))
+            if off is not None:
+                mine.append((off, size, per_ms))
                 if name == "time_boot_ms":
-                    boot_ms.append(int.from_bytes(data[10 + off:14 + off], "little"))
+                    boot_ms.append(int.from_bytes(payload[off:off + size], "little"))
         patches.append(mine)
     span_ms = max(boot_ms) - min(boot_ms) + 20  # the last frame's tick, and one more
     return Recording(frames, patches, span_ms, sum(len(f) for f in frames))
 
 
 def make_frame(rec: Recording, i: int) -> bytes:
-    """Frame i of the looped stream: numbered, its clock moved on by whole loops."""
+    """Frame i of the looped stream: numbered, its clock moved on by whole loops (a time
+    field that MAVLink 2 truncated away, its high bytes being zero, is put back first and the
+    payload truncated again after: on the ground, AOA_SSA is its time stamp alone)."""
     n = len(rec.frames)
     loop, src = divmod(i, n)
-    buf = bytearray(rec.frames[src])
-    buf[3] = (i >> 8) & 0xFF  # compat_flags: the frame number's high byte
-    buf[4] = i & 0xFF  # sequence: its low byte
+    data = rec.frames[src]
+    payload = bytearray(data[10:10 + data[1]])
     if loop:
         for off, size, per_ms in rec.patches[src]:
-            value = int.from_bytes(buf[off:off + size], "little") + loop * rec.span_ms * per_ms
-            buf[off:off + size] = (value % (1 << (8 * size))).to_bytes(size, "little")
-    end = 10 + buf[1]
-    crc = x25crc(bytes(buf[1:end]))
+            if len(payload) < off + size:
+                payload.extend(bytes(off + size - len(payload)))
+            value = int.from_bytes(payload[off:off + size], "little") + loop * rec.span_ms * per_ms
+            payload[off:off + size] = (value % (1 << (8 * size))).to_bytes(size, "little")
+        while len(payload) > 1 and payload[-1] == 0:
+            del payload[-1]
+    buf = bytearray(data[:10]) + payload
+    buf[1] = len(payload)
+    buf[3] = (i >> 8) & 0xFF  # compat_flags: the frame number's high byte
+    buf[4] = i & 0xFF  # sequence: its low byte
+    crc = x25crc(bytes(buf[1:]))
     msg_id = buf[7] | buf[8] << 8 | buf[9] << 16
     crc.accumulate(bytes((apm.mavlink_map[msg_id].crc_extra,)))  # type: ignore[arg-type]
-    buf[end] = crc.crc & 0xFF
-    buf[end + 1] = crc.crc >> 8
-    return bytes(buf)
+    return bytes(buf) + crc.crc.to_bytes(2, "little")
 
 
 def frame_number(data: bytes) -> int:
@@ -540,9 +547,16 @@ def analyse(sent_ns: list[int], write_ns: list[int], frames: list[bytes], got: l
                                "cpu_pct_of_one_core": round(100 * ph.cpu_s / span, 2)}
         if sent:
             bytes_sent = sum(len(frames[i]) for i in range(ph.first, ph.end))
-            wrote_s = (sent_ns[ph.end - 1] - sent_ns[ph.first]) / 1e9
             rec["bytes_sent"] = bytes_sent
-            rec["write_rate_frames_s"] = round(sent / wrote_s, 1) if wrote_s > 0 else None
+            # bursts: the rate within each burst (the pty took them as fast as the router
+            # read), the median of the bursts; else over the phase
+            chunk = BURST_FRAMES if ph.name == "bursts" else sent
+            rates = []
+            for a in range(ph.first, ph.end - 1, chunk):
+                b = min(a + chunk, ph.end) - 1
+                if b > a and sent_ns[b] > sent_ns[a]:
+                    rates.append((b - a) / ((sent_ns[b] - sent_ns[a]) / 1e9))
+            rec["write_rate_frames_s"] = round(statistics.median(rates), 1) if rates else None
             rec["loss_pct"] = round(100 * (sent - len(lat)) / sent, 3)
             calls = sorted(write_ns[ph.first:ph.end])
             rec["write_call_us"] = {"p50": round(calls[len(calls) // 2] / 1e3, 1),
