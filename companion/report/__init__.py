@@ -16,11 +16,13 @@ from typing import TYPE_CHECKING
 from companion.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
+    from companion.report.autopilot_figures import AUTOPILOT_FIGURES
     from companion.report.figures import FIGURES, FigureSpec, MissingData
     from companion.report.flight import FlightData, LogStatus, load_flight
     from companion.report.report import BuiltFigure, ReportResult, build_figures, generate_report
 
 __all__ = [
+    "AUTOPILOT_FIGURES",
     "FIGURES",
     "BuiltFigure",
     "FigureSpec",
@@ -34,6 +36,7 @@ __all__ = [
 ]
 
 _HOME = {
+    "AUTOPILOT_FIGURES": "autopilot_figures",
     "FIGURES": "figures",
     "FigureSpec": "figures",
     "MissingData": "figures",

@@ -22,6 +22,7 @@ from companion.report.headers import definition_records, known_header
 __all__ = [
     "FLIGHT_LOGS",
     "MAX_LOG_BYTES",
+    "OPTIONAL_LOGS",
     "FlightData",
     "LogStatus",
     "load_flight",
@@ -37,6 +38,11 @@ FLIGHT_LOGS: dict[str, str] = {
     "control": "control law outputs",
     "estimator": "on-board state estimate",
     "truth": "SITL ground truth",
+}
+
+#: Logs only some flights have: read when present (as every ``*.bin`` is), never reported missing.
+OPTIONAL_LOGS: dict[str, str] = {
+    "autopilot": "the flight controller's own estimate, clock sync and GUIDED targets",
 }
 
 #: Larger files are refused rather than read whole into memory (a 10-minute flight is ~10 MB).
@@ -113,7 +119,7 @@ class FlightData:
     def why_missing(self, name: str, index: int | None = None, columns: tuple[str, ...] = ()) -> str:
         """A one-line reason, naming the file, why `name`.bin cannot give the data asked for."""
         st = self.logs.get(name)
-        what = FLIGHT_LOGS.get(name, name)
+        what = FLIGHT_LOGS.get(name) or OPTIONAL_LOGS.get(name, name)
         if st is None or not st.present:
             return f"{name}.bin is missing ({what})"
         if st.log is None:

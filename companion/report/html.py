@@ -10,6 +10,7 @@ import base64
 from dataclasses import dataclass
 from html import escape
 
+from companion.report.autopilot import AutopilotSummary
 from companion.report.summary import Summary
 
 __all__ = ["FigureEntry", "render_html"]
@@ -62,8 +63,34 @@ def _summary_table(s: Summary) -> str:
                              + ("; long formats sampled" if s.csv_estimated else "") + ")"),
     ]
     rows += [(k, str(v)) for k, v in s.counters.items()]
+    if s.autopilot is not None:
+        rows += _autopilot_rows(s.autopilot)
     body = "".join(f"<tr><th>{escape(k)}</th><td>{escape(v)}</td></tr>" for k, v in rows)
     return f"<table>{body}</table>"
+
+
+def _angles(deg: tuple[float, float, float]) -> str:
+    return f"roll {deg[0]:.2f}, pitch {deg[1]:.2f}, yaw {deg[2]:.2f} deg"
+
+
+def _autopilot_rows(a: AutopilotSummary) -> list[tuple[str, str]]:
+    """Rows of a flight beside a flight controller (autopilot.bin)."""
+    att, sync, sent = a.attitude, a.sync, a.targets
+    rows = [("attitude, ours - autopilot (RMS)",
+             f"{_angles(att.rms_diff_deg)} ({att.n} samples, {att.span_s:.1f} s)" if att is not None
+             else f"not compared: {a.attitude_missing}")]
+    if att is not None:
+        rows += [(f"attitude RMSE against truth, {who}", _angles(rmse))
+                 for who, rmse in (("ours", att.ours_rmse_deg), ("autopilot", att.autopilot_rmse_deg))
+                 if rmse is not None]
+    rows.append(("autopilot clock map",
+                 f"{sync.n} round trips, drift {sync.drift_ppm[-1]:.2f} ppm (last), latency "
+                 f"{sync.latency_median_ms:.2f} ms (median), {sync.reset_count} "
+                 f"restart{'' if sync.reset_count == 1 else 's'}" if sync is not None
+                 else f"not logged: {a.sync_missing}"))
+    if sent is not None:
+        rows.append(("attitude targets sent in GUIDED", f"{sent.n} over {sent.span_s:.1f} s"))
+    return rows
 
 
 def _logs_table(s: Summary) -> str:

@@ -12,7 +12,8 @@ import matplotlib
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from companion.report.figures import FIGURES, STYLE, MissingData, Products
+from companion.report.autopilot_figures import figures_for
+from companion.report.figures import STYLE, MissingData, Products
 from companion.report.flight import FlightData, load_flight
 from companion.report.html import FigureEntry, render_html
 from companion.report.summary import Summary, summarise
@@ -50,7 +51,7 @@ def build_figures(fd: FlightData) -> list[BuiltFigure]:
     products = Products(fd)
     out = []
     with matplotlib.rc_context(_RC):
-        for spec in FIGURES:
+        for spec in figures_for(fd):
             try:
                 fig: Figure | None = spec.build(products)
                 reason = None

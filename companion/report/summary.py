@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from companion.report.analysis import counter_gaps, csv_size_bytes
+from companion.report.autopilot import AutopilotSummary, summarise_autopilot
 from companion.report.flight import FlightData
 
 __all__ = ["EventRow", "LogRow", "Summary", "ThreadRow", "summarise"]
@@ -80,6 +81,9 @@ class Summary:
     """(thread, kind) -> events, over the whole flight (also those not listed)."""
     injected: list[str] = field(default_factory=list)
     """Faults a simulation injected on purpose (run.json and summary.json), one line each."""
+    autopilot: AutopilotSummary | None = None
+    """Our estimate against the autopilot's, its clock map, GUIDED targets: only for a flight
+    with an autopilot.bin."""
 
     @property
     def restarts(self) -> int:
@@ -223,4 +227,5 @@ def summarise(fd: FlightData, *, measure_csv: bool = True) -> Summary:
         events=events,
         event_counts=event_counts,
         injected=_injected(fd),
+        autopilot=summarise_autopilot(fd),
     )
