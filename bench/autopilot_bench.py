@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import math
 import os
 import platform
@@ -607,8 +608,10 @@ def main() -> int:
         # the CPU part names its flights (they are in "estimation" already)
         saved = {**result, "cpu": {**result["cpu"], **{
             k: [f["label"] for f in result["cpu"][k]] for k in ("full", "mems")}}}
-        args.json.write_text(json.dumps(saved, indent=1, default=float) + "\n",
-                             encoding="utf-8")
+        # a flight's directory was a temporary one: its name only, no machine's path
+        text_json = json.dumps(saved, indent=1, default=float)
+        text_json = re.sub(r'"flight_dir": "[^"]*/([^"/]+)"', r'"flight_dir": "\1"', text_json)
+        args.json.write_text(text_json + "\n", encoding="utf-8")
     return 0
 
 

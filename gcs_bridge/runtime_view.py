@@ -68,18 +68,13 @@ class BridgeCore:
         return int(self.ctx.vehicle_id)
 
     def encoding(self, claim: Identity) -> Identity:
-        """The identity whose integer encoding a link claiming `claim` uses. Beside an autopilot
-        the clients take the encoding of every component of the system from the autopilot's
-        HEARTBEAT (MAVProxy, QGroundControl, MAVSDK), so ours follows its firmware (ArduPilot:
-        C cast, PX4: bytewise); another firmware, or none heard yet, leaves the link's claim."""
-        ap = self.autopilot
-        ident = ap.identity if ap is not None else None
-        if ident is None:
-            return claim
-        try:
-            return Identity(ident.firmware)
-        except ValueError:
-            return claim
+        """The identity whose integer encoding a link claiming `claim` uses: its own, beside an
+        autopilot too. QGroundControl decodes each component's integers by that component's
+        own HEARTBEAT (C cast only for one that says ArduPilot), and the companion's says
+        MAV_AUTOPILOT_INVALID and advertises bytewise; a link whose client takes the C cast
+        for a whole ArduPilot system (MAVProxy) says ``?identity=ardupilot``
+        (docs/ground-stations.md)."""
+        return claim
 
     def now_real_ns(self) -> int:
         return self.ctx.clock.realtime_ns()

@@ -36,11 +36,10 @@ MAV_AUTOPILOT_ARDUPILOTMEGA and QGC loads its APM plugin:
   The Log Download page asks component 1 (ArduPlane's logs); the companion's log list is asked
   of 191 here as the brief of this file wants, though no QGC page would.
 
-Found QGC would not accept (`test_9_...`, marked xfail): the companion sends its integer
-parameters by C cast beside ArduPilot, but QGC converts from the C cast only for components
-whose own HEARTBEAT says ArduPilot (APMFirmwarePlugin::adjustIncomingMavlinkMessage,
-`_ardupilotComponentMap`); 191's HEARTBEAT says MAV_AUTOPILOT_INVALID, so QGC reads them
-bytewise (an integer 1 shows as 1065353216).
+QGC converts integers from the C cast only for components whose own HEARTBEAT says ArduPilot
+(APMFirmwarePlugin::adjustIncomingMavlinkMessage, `_ardupilotComponentMap`); 191's HEARTBEAT
+says MAV_AUTOPILOT_INVALID, so QGC reads its integers bytewise, and the companion sends them so
+(`test_9_...`; with the C cast an integer 1 showed as 1065353216).
 
 Recorded, QGC copes: ArduPlane ACCEPTs REQUEST_MESSAGE for CAMERA_INFORMATION and
 GIMBAL_MANAGER_INFORMATION and sends neither (no camera, no mount), so QGC's camera and gimbal
@@ -501,11 +500,6 @@ def test_8_companion_parameters_from_191(rig: Rig, qgc: Replay) -> None:
     assert not theirs, "step #10: ArduPlane answered a list request addressed to 191"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "the companion C-casts integer parameters beside ArduPilot (BridgeCore.encoding), but QGC "
-    "converts from the C cast only for components whose own HEARTBEAT says ArduPilot "
-    "(APMFirmwarePlugin::adjustIncomingMavlinkMessage); 191 says MAV_AUTOPILOT_INVALID, so QGC "
-    "reads its integers bytewise"))
 def test_9_companion_integers_as_qgc_decodes_them(rig: Rig, qgc: Replay) -> None:
     """ParameterManager::_mavlinkParamUnionToVariant reads the four bytes as the declared type
     for every component APMFirmwarePlugin has not marked ArduPilot (by its HEARTBEAT)."""

@@ -40,7 +40,10 @@ def flights(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
            "--log-dir", str(work / "flights"), "--params-file", str(work / "p.parm")]
     done = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=SIM_TIMEOUT_S)
     assert done.returncode == 0, done.stderr[-2000:]
-    dirs = sorted((work / "flights").iterdir())
+    # vehicle 1 first: by the "-v<id>" suffix, not by name (the two aircraft may start in
+    # different seconds on a busy machine, and a name sorts by its time stamp first)
+    dirs = sorted((work / "flights").iterdir(),
+                  key=lambda d: int(d.name.rpartition("-v")[2]) if "-v" in d.name else 1)
     assert len(dirs) == 2, dirs
     return dirs
 
