@@ -20,7 +20,7 @@ ifneq ($(MAVLINK_ROUTER),)
 export MAVLINK_ROUTER
 endif
 
-.PHONY: run test lint bench bench-quick bench-faults bench-soak docs clean
+.PHONY: run test test-peers lint bench bench-quick bench-faults bench-soak docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -32,7 +32,13 @@ run: $(STAMP)
 	$(BIN)/companion sim --duration 120 --scenario mixed --realtime --horizon-camera thesis
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not sitl and not router"
+
+# The tests against the peer programs (the real ArduPlane SITL, mavlink-routerd): a few minutes
+# more, so apart from `make test`; .ci/run runs both. Without the programs pytest deselects
+# them all and says so (exit 5: no test ran, which is not a failure here).
+test-peers: $(STAMP)
+	$(BIN)/python -m pytest -q -m "sitl or router" || [ $$? -eq 5 ]
 
 lint: $(STAMP)
 	$(BIN)/ruff check companion gcs_bridge horizon legacy_protocol tests bench
