@@ -225,10 +225,3 @@ VEHICLE = VehicleTable((
 ))
 """The thesis aircraft (IMU, GPS and servo board on serial ports, the estimator, the control
 law) and, switched on by a URL, the link to a flight controller beside which it flies."""
-
-
-def example_devices_toml(table: VehicleTable | Mapping[str, DeviceConfig] = VEHICLE) -> str:
-    """The ``[devices.<name>]`` tables of an example configuration, with their defaults."""
-    defaults = table.device_defaults() if isinstance(table, VehicleTable) else dict(table)
-    return "".join(f'[devices.{name}]\nport = "{d.port}"\nbaud = {d.baud}\n\n'
-                   for name, d in defaults.items())
