@@ -441,7 +441,7 @@ def report(result: dict[str, Any]) -> str:
             f"{_f(_mean(fl, 'score', 'all', 'gps', 'hpos_m', 'max'))} | |")
     add("\nHow each filter is told: ours, the autopilot's RAW_IMU (its first IMU, after "
         "ArduPilot's own low-pass, asked at 50 Hz, delivered at the rate in the per-flight table) "
-        "and GPS_RAW_INT (5 Hz, dated by its UNIX time through SYSTEM_TIME), with the "
+        "and GPS_RAW_INT (5 Hz, dated by its own stamp through the link's clock map), with the "
         "estimator's default (thesis-tuned) parameters, no barometer, compass or airspeed; "
         "EKF3, its own two IMUs (SIM_IMU_COUNT 2, a lane each, EK3_IMU_MASK 3) sampled at 1 kHz "
         "and integrated over its 50 Hz main loop (SCHED_LOOP_RATE 50), GPS (5 Hz, 100 ms "
