@@ -111,7 +111,7 @@ def test_mavproxy_log_list_download_and_ftp(tmp_path: Path) -> None:
             mp.cmd(f"log download 0 {target}")
             assert wait_for(lambda: target.is_file() and target.stat().st_size == old_size, 30.0,
                             0.05), "\n".join(mp.since(mark))
-            assert mp.wait_line("Finished downloading", 10.0, mark) is not None, \
+            assert mp.wait_line("Finished downloading", 30.0, mark) is not None, \
                 "\n".join(mp.since(mark))
             assert target.read_bytes() == old_archive_bytes(flights)
 
