@@ -120,13 +120,12 @@ def _check(buf: bytearray, pos: int, frame_len: int) -> Frame | None:
         if buf[pos + 2] & ~0x01:
             return None  # an incompatibility flag this protocol version does not define
         header = 10
-        seq_at, sys_at = pos + 4, pos + 5
+        sys_at = pos + 5
         msg_id = buf[pos + 7] | buf[pos + 8] << 8 | buf[pos + 9] << 16
     else:
         header = 6
-        seq_at, sys_at = pos + 2, pos + 3
+        sys_at = pos + 3
         msg_id = buf[pos + 5]
-    del seq_at
     crc_end = pos + header + payload_len
     extra = _CRC_EXTRA.get(msg_id)
     known = extra is not None

@@ -48,6 +48,12 @@ def solution_to_fix(sol: GpsSolution, t_ns: int, *, heading: bool = True) -> Gps
         latency_s=sol.latency_s, heading_deg=sol.heading_deg if heading else None)
 
 
+def define_fix_log(tlog: Any) -> None:
+    """The format of ``gps.bin``'s fixes, whoever produces them (this driver, or an autopilot
+    link whose GPS takes the slot): the record's own layout."""
+    tlog.define(FMT_SOLUTION, FIX_LAYOUT.fmt, FIX_LAYOUT.names)
+
+
 class GpsDriver(SerialDevice):
     """Decodes NMEA epochs; every epoch handed off is a GpsFix (a cycle) and a log record."""
 
@@ -90,7 +96,7 @@ class GpsDriver(SerialDevice):
         ]
 
     def define_logs(self, tlog: Any) -> None:
-        tlog.define(FMT_SOLUTION, FIX_LAYOUT.fmt, FIX_LAYOUT.names)
+        define_fix_log(tlog)
         super().define_logs(tlog)
 
     def configure(self) -> None:

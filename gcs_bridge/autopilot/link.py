@@ -40,7 +40,7 @@ from pymavlink.dialects.v20 import ardupilotmega as apm
 from companion.core.config import DeviceConfig
 from companion.core.params import ParamSpec, int_param
 from companion.core.state import ImuSlowSample
-from companion.drivers.gps import FIX_LAYOUT, FMT_SOLUTION
+from companion.drivers.gps import FIX_LAYOUT, FMT_SOLUTION, define_fix_log
 from companion.drivers.imu import FMT_FAST, FMT_SLOW, define_sample_logs
 from companion.drivers.servo import FMT_EXCHANGE, define_exchange_log
 from companion.logs.truth import FMT_TRUTH, define_truth_log
@@ -204,7 +204,7 @@ class AutopilotLink(ManagedThread):
         logs = self.ctx.logs
         if logs is None or self._logs:
             return
-        for name, define in (("imu", define_sample_logs), ("gps", _define_gps),
+        for name, define in (("imu", define_sample_logs), ("gps", define_fix_log),
                              ("servo", define_exchange_log), ("truth", define_truth_log)):
             try:
                 tlog = logs.open(name)
@@ -592,6 +592,3 @@ class AutopilotLink(ManagedThread):
         if tlog is not None:
             tlog.log(fmt, *values, t_ns=t_ns)
 
-
-def _define_gps(tlog: Any) -> None:
-    tlog.define(FMT_SOLUTION, FIX_LAYOUT.fmt, FIX_LAYOUT.names)

@@ -24,6 +24,7 @@ from typing import Any
 
 from companion.core.fastinit import fast_frozen
 from companion.core.state import GpsFix, ImuSample, ServoState
+from companion.drivers.servo_protocol import CH_THROTTLE, us_to_throttle
 
 __all__ = ["AutopilotEstimate", "BatterySample", "Firmware", "euler_from_quat",
            "quat_from_euler_wxyz", "IMU_MESSAGES", "TruthSample", "gps_fix",
@@ -134,7 +135,7 @@ def gps_fix(msg: Any, t_ns: int) -> GpsFix:
 
 
 def servo_state(rc: Any | None, outputs: Any | None, t_ns: int, seq: int, guided: bool,
-                throttle_channel: int = 2) -> ServoState:
+                throttle_channel: int = CH_THROTTLE) -> ServoState:
     """RC_CHANNELS (the pilot's sticks, us) and SERVO_OUTPUT_RAW (what the autopilot drives,
     us) as one exchange; `guided`: the autopilot is in the mode the companion flies in (what
     the control law engages on, as the thesis aircraft's mode switch). `pilot_throttle` is the
@@ -145,7 +146,7 @@ def servo_state(rc: Any | None, outputs: Any | None, t_ns: int, seq: int, guided
     # the throttle the aircraft flies at: the autopilot's own output (in AUTO the pilot's stick
     # may sit at idle while the autopilot flies), else the pilot's stick
     throttle_us = computer[throttle_channel] or pilot[throttle_channel]
-    throttle = min(max((throttle_us - 1000) / 1000.0, 0.0), 1.0) if throttle_us else 0.0
+    throttle = us_to_throttle(throttle_us) if throttle_us else 0.0
     failsafe = rc is None or getattr(rc, "rssi", 255) == 0
     return ServoState(t_ns, seq & 0xFF, pilot, computer, guided, guided, failsafe, 0, 0,
                       pilot_auto_switch=guided, pilot_throttle=throttle)
