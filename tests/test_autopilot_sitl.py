@@ -158,3 +158,63 @@ def test_the_link_recovers_when_the_autopilot_reboots(tmp_path: Path) -> None:
     assert threads["autopilot"]["restarts"] == 0
     notices = [e["detail"] for e in summary["events"] if e["kind"] == "notice"]
     assert any("rebooted" in n for n in notices), notices
+
+
+def test_the_link_recovers_when_the_autopilot_is_killed_in_flight_and_started_again(
+        tmp_path: Path) -> None:
+    """ArduPlane flying its circuit is killed (SIGKILL: a flight controller losing power); the
+    cable stays and goes quiet. The link reports the silence and keeps its thread (no restart,
+    the thesis threads run on), then, when the autopilot is started again on the same cable,
+    reports it recovered and rebooted and takes its data again; the logs hold both parts."""
+    from companion.core.clock import Clock
+    from companion.runtime import Runtime, RuntimeOptions
+    from companion.sim.ardupilot import ArduPlaneSitl
+    from companion.sim.ardupilot_mission import ArduPlaneGround
+    from companion.vehicle import apply_device_ports
+
+    speedup = 5.0
+    with ArduPlaneSitl(speedup=speedup) as sitl:
+        cfg = config(tmp_path)
+        apply_device_ports(cfg, {"autopilot": sitl.companion_url})
+        rt = Runtime(cfg, RuntimeOptions(clock=Clock(speedup), control=False))
+        runner = threading.Thread(target=rt.run, kwargs={"handle_signals": False}, daemon=True)
+        runner.start()
+        link = rt.manager.find("autopilot")
+        assert link is not None
+        deadline = time.monotonic() + 60  # about 10 s seen; bounds every wait below
+
+        def wait(cond: Any) -> bool:
+            while not cond() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            return bool(cond())
+
+        def events(kind: str) -> list[str]:
+            return [e["detail"] for e in rt.summary()["events"]
+                    if e["kind"] == kind and e.get("thread") == "autopilot"]
+
+        try:
+            with ArduPlaneGround(sitl.ground_url, speedup=speedup) as ground:
+                ground.start_mission()
+                ground.fly(60.0, until=lambda r: r.relative_alt_m > 30.0)
+                assert ground.report.relative_alt_m > 30.0, ground.report
+            before = link.counters()["imu_samples"]
+            assert before > 200, link.counters()
+            sitl.kill()
+            assert wait(lambda: events("silent")), rt.summary()["events"][-5:]
+            quiet = link.counters()["imu_samples"]
+            sitl.restart()
+            assert wait(lambda: link.counters()["imu_samples"] > quiet + 200), link.counters()
+            assert wait(lambda: events("recovered")), rt.summary()["events"][-5:]
+            assert wait(lambda: link.counters()["reboots"] >= 1), link.counters()
+        finally:
+            rt.manager.request_stop("test")
+            runner.join(30)
+        summary = rt.summary()
+    threads = threads_of(summary)
+    assert threads["autopilot"]["restarts"] == 0, threads["autopilot"]
+    assert all(t["restarts"] == 0 for t in threads.values()), threads
+    imu = read_log(Path(summary["flight_dir"]) / "imu.bin").data(1)
+    gap = np.diff(imu["time_s"])
+    # one gap: the autopilot's absence (host seconds of silence at the speed-up); the rest at
+    # the stream's period
+    assert len(imu) > 400 and int(np.sum(gap > 1.0)) == 1, np.sort(gap)[-3:]

@@ -275,13 +275,43 @@ class ArduPlaneSitl:
             self.companion_cable = PtyCable(f"serial0-{self.instance}")
             if self.ground:
                 self.ground_cable = PtyCable(f"serial1-{self.instance}")
-            cmd = self._cmd = self.command()
-            log.info("starting %s", " ".join(cmd))
-            with open(self.output_path, "wb") as out:
-                self.started_at = time.monotonic()
-                self.proc = subprocess.Popen(cmd, cwd=self.workdir, stdin=subprocess.DEVNULL,
-                                             stdout=out, stderr=subprocess.STDOUT)
-            self._wait_open()
+            self._launch()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _launch(self) -> None:
+        cmd = self._cmd = self.command()
+        log.info("starting %s", " ".join(cmd))
+        with open(self.output_path, "wb") as out:
+            self.started_at = time.monotonic()
+            self.proc = subprocess.Popen(cmd, cwd=self.workdir, stdin=subprocess.DEVNULL,
+                                         stdout=out, stderr=subprocess.STDOUT)
+        self._wait_open()
+
+    def kill(self) -> int | None:
+        """SIGKILL the autopilot and leave its cables in place: what a flight controller's loss
+        of power or a crash looks like from the companion's side of the wire (the port stays,
+        the bytes stop). Returns the exit code (None: it was not running)."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.kill()
+        code = self.proc.wait()
+        self.proc = None
+        return code
+
+    def restart(self) -> ArduPlaneSitl:
+        """Start the autopilot again after `kill`, on the same cables and working directory (so
+        with the parameters it had saved): a power cycle. Bounded as `start`."""
+        if self.companion_cable is None:
+            raise SitlError("the autopilot was never started: start, not restart")
+        if self.running():
+            raise SitlError("the autopilot is still running: kill it first")
+        self.proc = None
+        try:
+            self._launch()
         except BaseException:
             self.stop()
             raise
