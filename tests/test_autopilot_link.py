@@ -91,7 +91,8 @@ def start_runtime(tmp: Path, url: str, **opts: Any) -> tuple[Runtime, threading.
     cfg.logs.dir = str(tmp / "flights")
     cfg.params.file = str(tmp / "params.parm")
     apply_device_ports(cfg, {"autopilot": url})
-    rt = Runtime(cfg, RuntimeOptions(mavlink=False, legacy=False, control=False, **opts))
+    rt = Runtime(cfg, RuntimeOptions(**{"mavlink": False, "legacy": False, "control": False,
+                                        **opts}))
     runner = threading.Thread(target=rt.run, kwargs={"handle_signals": False}, daemon=True)
     runner.start()
     return rt, runner
@@ -408,3 +409,74 @@ def test_an_autopilot_speaking_mavlink1_with_quaternions_and_a_battery(
     assert battery.voltage_v == pytest.approx(12.3) and battery.remaining_pct == 87
     assert battery.current_a == pytest.approx(12.5)
     assert imu is not None and imu.accel_m_s2[2] == pytest.approx(-9.8)  # PX4: SI already
+
+
+def test_px4_gets_the_setpoint_stream_it_needs_before_offboard_and_only_while_the_law_is_on(
+        cable: Cable, tmp_path: Path) -> None:
+    """PX4 accepts a switch to OFFBOARD only while setpoints already stream. With the control
+    law on (CTL_MODE not 0) and PX4 in another mode (POSCTL), the link streams the law's
+    disengaged attitude (wings level) to PX4's component; with the law off, or AP_PX4_PRE 0,
+    nothing. Every one is logged with `guided` 0 (not flying)."""
+    import math
+
+    px4 = apm.MAVLink(None, srcSystem=7, srcComponent=1)
+    posctl = 3 << 16  # PX4's custom_mode: main mode in bits 16-23
+    stop_writing = threading.Event()
+
+    def frame(msg: Any) -> bytes:
+        data: bytes = msg.pack(px4)
+        px4.seq = (px4.seq + 1) & 0xFF
+        return data
+
+    def autopilot() -> None:
+        k = 0
+        while not stop_writing.is_set():
+            k += 1
+            chunk = [frame(px4.highres_imu_encode(k * 20_000, 0, 0, -9.81, 0, 0, 0, 0, 0, 0,
+                                                  0, 0, 0, 20.0, 0b111111))]
+            if k % 10 == 1:  # a still aircraft with a 3-D fix: the estimator starts
+                chunk.append(frame(px4.gps_raw_int_encode(
+                    k * 20_000, 3, 473_977_420, 85_455_940, 488_000, 80, 120, 0, 0, 12)))
+            if k % 50 == 1:
+                chunk.append(frame(px4.heartbeat_encode(
+                    apm.MAV_TYPE_FIXED_WING, apm.MAV_AUTOPILOT_PX4,
+                    apm.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, posctl, apm.MAV_STATE_ACTIVE)))
+            cable.write(b"".join(chunk))
+            time.sleep(0.02)
+
+    def targets() -> list[Any]:
+        return [m for m in frames_of(bytes(cable.received))
+                if m.get_type() == "SET_ATTITUDE_TARGET"]
+
+    cfg_params = {"CTL_MODE": 0}
+    rt, runner = start_runtime(tmp_path, cable.path, control=True)
+    writer = threading.Thread(target=autopilot, daemon=True)
+    try:
+        rt.ctx.params.set_many(cfg_params)
+        assert link_open(cable)
+        writer.start()
+        assert wait(lambda: rt.ctx.state.control.read() is not None, 15.0), "no control output"
+        assert wait(lambda: link_counters(rt)["autopilot_system"] == 7)
+        time.sleep(1.0)  # a second with the law off: the absence of targets is the point
+        assert targets() == [] and link_counters(rt)["offboard_prestream"] == 0
+        rt.ctx.params.set_many({"CTL_MODE": 3})
+        assert wait(lambda: len(targets()) >= 10, 10.0), link_counters(rt)
+        rt.ctx.params.set_many({"AP_PX4_PRE": 0})
+        time.sleep(0.2)  # what was queued when the parameter changed drains
+        n_off = len(targets())
+        time.sleep(1.0)
+        assert len(targets()) == n_off, "still streaming with AP_PX4_PRE 0"
+    finally:
+        stop_writing.set()
+        writer.join(5.0)
+        summary = stop(rt, runner)
+    sent = targets()
+    assert all((m.target_system, m.target_component) == (7, 1) for m in sent)
+    for m in sent:  # wings level: the quaternion has no roll
+        w, x, y, z = m.q
+        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        assert abs(roll) < 1e-3
+    c = {t["name"]: t for t in summary["threads"]}["autopilot"]["counters"]
+    assert c["attitude_targets"] == 0 and c["offboard_prestream"] == len(sent)
+    commands = read_log(Path(summary["flight_dir"]) / "autopilot.bin").data(5)
+    assert len(commands) == len(sent) and not commands["guided"].any()

@@ -142,7 +142,7 @@ class AutopilotLink(ManagedThread):
             "frames", "bad_frames", "undecodable", "bytes_in", "frames_out", "tx_failed", "heartbeats",
             "foreign_frames", "system_changes", "reboots", "requests", "acks_refused",
             "imu_samples", "gps_fixes", "estimates", "truth_samples", "time_syncs",
-            "attitude_targets"), 0)
+            "attitude_targets", "offboard_prestream"), 0)
         self._next_command_ns = 0
         self._unix_minus_boot_ns: int | None = None
         self._last_stamp_ns = 0
@@ -175,6 +175,12 @@ class AutopilotLink(ManagedThread):
             int_param(f"{prefix}_CMD_HZ", 25, 1, 100, "Hz",
                       "Most attitude targets a second sent to the autopilot in GUIDED "
                       "(SET_ATTITUDE_TARGET from the control law; ArduPlane holds each a few seconds)."),
+            int_param(f"{prefix}_PX4_PRE", 1, 0, 1, "",
+                      "PX4 only. 1: while the control law is on (CTL_MODE not 0) and PX4 is "
+                      "not in OFFBOARD, stream its disengaged attitude (wings level, present "
+                      "heading) so that the pilot or ground can switch to OFFBOARD, which PX4 "
+                      "refuses without a setpoint stream; PX4 ignores them in other modes. "
+                      "0: send only in OFFBOARD (the switch is then refused)."),
             int_param(f"{prefix}_DSTREAM", 1, 0, 1, "",
                       "1: when an ArduPilot refuses SET_MESSAGE_INTERVAL, ask with "
                       "REQUEST_DATA_STREAM instead, which sets that port's SRn_* stream rates "
@@ -280,12 +286,23 @@ class AutopilotLink(ManagedThread):
         mode a companion flies in (ArduPlane's GUIDED, PX4's OFFBOARD) and the law is engaged
         with a fresh output. Nothing is sent otherwise: the pilot's or ground's mode change,
         or a control thread that stopped, hands the aircraft back to the autopilot (GUIDED
-        holds the last target about 3 s, then its own guided behaviour)."""
+        holds the last target about 3 s, then its own guided behaviour).
+
+        One exception, PX4's (`PX4_PRE`): PX4 refuses a switch to OFFBOARD unless setpoints
+        already stream (MAVLink's offboard protocol), so while the law is switched on
+        (`CTL_MODE` not off) and PX4 is in another mode, the law's disengaged output streams:
+        wings level at its pitch set-point, the present heading. PX4 ignores them outside
+        OFFBOARD; they are logged with `guided` 0."""
         ident = self.identity
-        if ident is None or not self.guided or now_ns < self._next_command_ns:
+        if ident is None or now_ns < self._next_command_ns:
             return
         out = self.ctx.state.control.read()
-        if out is None or not out.enabled or now_ns - out.t_ns > CONTROL_FRESH_S * 1e9:
+        if out is None or now_ns - out.t_ns > CONTROL_FRESH_S * 1e9:
+            return
+        flying = self.guided and out.enabled
+        prestream = (not self.guided and ident.firmware == Firmware.PX4 and out.mode != "off"
+                     and bool(self.param("PX4_PRE")))
+        if not (flying or prestream):
             return
         self._next_command_ns = now_ns + int(1e9 / max(1, int(self.param("CMD_HZ"))))
         q = quat_from_euler_wxyz(out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad)
@@ -293,9 +310,9 @@ class AutopilotLink(ManagedThread):
         self._send(self._out.set_attitude_target_encode(
             boot_ms, ident.system, ident.component, _IGNORE_BODY_RATES, q, 0.0, 0.0, 0.0,
             float(min(max(out.throttle, 0.0), 1.0))))
-        self.c["attitude_targets"] += 1
+        self.c["attitude_targets" if flying else "offboard_prestream"] += 1
         self._log(None, FMT_COMMAND, out.roll_sp_rad, out.pitch_sp_rad, out.yaw_sp_rad,
-                  out.throttle, 1, t_ns=now_ns)
+                  out.throttle, int(flying), t_ns=now_ns)
 
     def _send_queued(self) -> None:
         transport = self.transport
