@@ -63,7 +63,7 @@ PARAM_BATCH_PAUSE_NS = 5_000_000  # host ns between MAV_PARAM_BURST-sized batche
 PEER_SILENCE_S = 5.0  # a transfer for a peer not heard from for this long is abandoned
 RADIO_BULK_SHARE = 0.8  # of what the telemetry schedule leaves of a serial line
 
-SenderItem = list[Msg] | Callable[["Link"], None] | bytes
+SenderItem = list[Msg] | Callable[["Link"], None] | bytes | tuple[bytes, ...]
 """What the sender sends: messages, a function of the link, or a forwarded frame's bytes."""
 
 
@@ -453,6 +453,9 @@ class Link:
             self.emit(item)
         elif isinstance(item, bytes):
             self.send_forwarded(item)
+        elif isinstance(item, tuple):  # the router's frames of one read of the autopilot
+            for frame in item:
+                self.send_forwarded(frame)
         else:
             item(self)
 

@@ -183,8 +183,8 @@ class RouterThread(ManagedThread):
         self.work_t0_ns = time.perf_counter_ns()
         handled = 0
         while item is not None:
-            self.router.from_autopilot(*item)
-            handled += 1
+            self.router.from_autopilot(item)  # the frames of one read of the autopilot link
+            handled += len(item)
             if handled >= ITEMS_PER_CYCLE or self.stop_requested:
                 break
             item = self.frames.get_nowait()

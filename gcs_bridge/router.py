@@ -125,14 +125,28 @@ class Router:
             self._learn(src, index)
         return self._route(index, data, msg_id, src)
 
-    def from_autopilot(self, src_system: int, src_component: int, msg_id: int,
-                       data: bytes) -> None:
-        """Route a frame from the autopilot (the router thread). What is for the companion
-        was the autopilot link's already (it reads every frame it receives)."""
-        src = (src_system, src_component)
+    def from_autopilot(self, frames: Sequence[tuple[int, int, int, bytes]]) -> None:
+        """Route the frames the autopilot link read in one go, each ``(system, component,
+        msg_id, bytes)`` (the router thread). What is for the companion was the autopilot
+        link's already (it reads every frame it receives). One batch takes the lock once and
+        hands each ground link one item: at a flight controller's line rate a frame costs a
+        few microseconds here instead of three lock round trips and a queue hand-off."""
+        per_link: dict[int, list[bytes]] = {}
         with self._lock:
-            self._learn(src, AUTOPILOT)
-        self._route(AUTOPILOT, data, msg_id, src)
+            for src_system, src_component, msg_id, data in frames:
+                src = (src_system, src_component)
+                self._learn(src, AUTOPILOT)
+                dests, _local = self._destinations(AUTOPILOT, data, msg_id, src)
+                for key in dests:  # never AUTOPILOT: the source is discarded
+                    per_link.setdefault(key, []).append(data)
+        for key, batch in per_link.items():
+            link = self.links[key]
+            ok = link.post(tuple(batch))
+            with self._lock:
+                if ok:
+                    link.routes.forwarded_out += len(batch)
+                else:
+                    link.routes.queue_full += len(batch)
 
     def take_unrouted(self) -> tuple[int, str] | None:
         """Frames dropped for want of a route since the last call, and the latest one's
@@ -164,28 +178,36 @@ class Router:
     def _counters(self, key: int) -> RouteCounters:
         return self.autopilot if key == AUTOPILOT else self.links[key].routes
 
-    def _route(self, source: int, data: bytes, msg_id: int, src: tuple[int, int]) -> bool:
+    def _destinations(self, source: int, data: bytes, msg_id: int,
+                      src: tuple[int, int]) -> tuple[set[int], bool]:
+        """Under the lock: the link keys a frame from link `source` goes to (never `source`),
+        and whether the companion is among its destinations. Counts it as forwarded or as
+        dropped for want of a route."""
         target = target_of(data, msg_id)
         local = True
+        if target is None or target[0] == 0:
+            dests = set(self.links) | {AUTOPILOT}
+        else:
+            system, component = target
+            local = (system == self.core.sysid and component in (0, self.core.compid))
+            dests = set()
+            for (s, c), where in self._routes.items():
+                if s == system and (component == 0 or c == component):
+                    dests |= where
+            if not dests and not local:
+                self._counters(source).dropped += 1
+                self._unrouted += 1
+                self._unrouted_latest = (f"message {msg_id} from {src[0]}/{src[1]} for "
+                                         f"{system}/{component}")
+                return dests, False
+        dests.discard(source)
+        if dests:
+            self._counters(source).forwarded_in += 1
+        return dests, local
+
+    def _route(self, source: int, data: bytes, msg_id: int, src: tuple[int, int]) -> bool:
         with self._lock:
-            if target is None or target[0] == 0:
-                dests = set(self.links) | {AUTOPILOT}
-            else:
-                system, component = target
-                local = (system == self.core.sysid and component in (0, self.core.compid))
-                dests = set()
-                for (s, c), where in self._routes.items():
-                    if s == system and (component == 0 or c == component):
-                        dests |= where
-                if not dests and not local:
-                    self._counters(source).dropped += 1
-                    self._unrouted += 1
-                    self._unrouted_latest = (f"message {msg_id} from {src[0]}/{src[1]} for "
-                                             f"{system}/{component}")
-                    return False
-            dests.discard(source)
-            if dests:
-                self._counters(source).forwarded_in += 1
+            dests, local = self._destinations(source, data, msg_id, src)
         for key in dests:
             if key == AUTOPILOT:
                 self.to_autopilot.put(data)

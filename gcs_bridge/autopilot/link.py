@@ -270,12 +270,16 @@ class AutopilotLink(ManagedThread):
         published = 0
         chunks = transport.recv(RECV_TIMEOUT_S)
         self.work_t0_ns = time.perf_counter_ns()  # the step's time excludes the wait
+        batch: list[tuple[int, int, int, bytes]] = []
         for peer, data in chunks:
             arrival_ns = clock.realtime_ns()
             self.c["bytes_in"] += len(data)
             for frame in self._splitter.feed(data):
                 transport.accept_peer(peer, True)
+                batch.append((frame.src_system, frame.src_component, frame.msg_id, frame.data))
                 published += self._frame(frame, arrival_ns)
+        if batch:  # one hand-off per read, not per frame: the router's input
+            self.ctx.state.queue(RX_QUEUE).put(batch)
         self.c["bad_frames"] = self._splitter.bad_crc
         self._command_attitude(clock.realtime_ns())
         self._send_queued()
@@ -337,11 +341,9 @@ class AutopilotLink(ManagedThread):
 
     # ------------------------------------------------------------------ what arrives
     def _frame(self, frame: Frame, arrival_ns: int) -> int:
-        """One whole frame: handed to the router as it came, then decoded if the link uses
-        its kind."""
+        """One whole frame (handed to the router as it came, by `step`): decoded if the link
+        uses its kind."""
         self.c["frames"] += 1
-        self.ctx.state.queue(RX_QUEUE).put(
-            (frame.src_system, frame.src_component, frame.msg_id, frame.data))
         if frame.msg_id not in _USED:
             return 0  # forwarded only: decoding it (a third of this thread's time) buys nothing
         try:

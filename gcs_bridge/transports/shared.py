@@ -25,7 +25,8 @@ MAX_FRAMES_PER_RECV = 256
 
 
 class SharedTransport(Transport):
-    """Frames from `rx` (``(system, component, msg_id, bytes)``), bytes to `tx`."""
+    """Frames from `rx` (lists of ``(system, component, msg_id, bytes)``, one per read of
+    the autopilot link), bytes to `tx`."""
 
     def __init__(self, endpoint: Endpoint, rx: MessageQueue[Any], tx: MessageQueue[Any]) -> None:
         super().__init__(endpoint)
@@ -42,9 +43,10 @@ class SharedTransport(Transport):
         item = self.rx.get(timeout_s)
         out: list[Chunk] = []
         while item is not None:
-            data = item[3]
-            out.append((PEER, data))
-            self.counters.bytes_in += len(data)
+            for frame in item:  # the frames of one read of the autopilot link
+                data = frame[3]
+                out.append((PEER, data))
+                self.counters.bytes_in += len(data)
             if len(out) >= MAX_FRAMES_PER_RECV:
                 break
             item = self.rx.get_nowait()
