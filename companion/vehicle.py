@@ -32,7 +32,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion.core.config import Config, ConfigError, DeviceConfig, load_config
+from companion.core.config import Config, ConfigError, DeviceConfig, load_config_given
 from companion.watchdog.task import RestartType, Task
 from companion.watchdog.thread import ManagedThread
 
@@ -61,6 +61,9 @@ class Row:
     switch: str = ""
     """The `RuntimeOptions` flag that leaves this row out (``estimator``, ``control``); empty:
     the row runs whenever it is enabled."""
+    config_table: str = ""
+    """A top-level configuration table that is this device's ``[devices.<name>]`` by another
+    name, with ``url`` for ``port`` (``[autopilot] url = "/dev/serial0,921600"``); empty: none."""
 
     @property
     def name(self) -> str:
@@ -143,9 +146,16 @@ def fill_device_defaults(cfg: Config, table: VehicleTable) -> Config:
 
 def load_vehicle_config(path: Path | None, table: VehicleTable | None = None) -> Config:
     """The configuration file `path` (None: the defaults) over the devices of `table` (the
-    thesis aircraft by default): every device present, an unknown one refused by name."""
+    thesis aircraft by default): every device present, an unknown one refused by name. A
+    device the file switches on with a port switches off the devices whose slots it fills,
+    unless the file configures them too (as ``--autopilot URL`` does, `apply_device_ports`)."""
     table = table or VEHICLE
-    return fill_device_defaults(load_config(path, devices=table.device_defaults()), table)
+    aliases = {r.config_table: r.name for r in table.devices() if r.config_table}
+    cfg, given = load_config_given(path, table.device_defaults(), aliases)
+    fill_device_defaults(cfg, table)
+    _switch_off_filled(cfg, {name for name in given
+                             if cfg.devices[name].enabled and cfg.devices[name].port}, given, table)
+    return cfg
 
 
 def device_settings(cfg: Config, name: str, table: VehicleTable | None = None) -> DeviceConfig:
@@ -169,14 +179,21 @@ def apply_device_ports(cfg: Config, ports: Mapping[str, str | None],
     aircraft with a flight controller does not also look for the thesis's serial devices."""
     table = table or VEHICLE
     given = {name: port for name, port in ports.items() if port}
-    fills: set[str] = set()
     for name, port in given.items():
         settings = device_settings(cfg, name, table)
         settings.port = port
         settings.enabled = True
+    _switch_off_filled(cfg, set(given), set(given), table)
+
+
+def _switch_off_filled(cfg: Config, sources: set[str], kept: set[str],
+                       table: VehicleTable) -> None:
+    """Switch off every device not in `kept` whose slots one of `sources` fills."""
+    fills: set[str] = set()
+    for name in sources:
         fills |= set(table[name].task.publishes)
     for row in table.devices():
-        if row.name not in given and fills & set(row.task.publishes):
+        if row.name not in kept and fills & set(row.task.publishes):
             device_settings(cfg, row.name, table).enabled = False
 
 
@@ -221,7 +238,8 @@ VEHICLE = VehicleTable((
              publishes=("imu", "imu_slow", "gps", "servo", "autopilot", "truth", "gps2",
                         "battery")),
         "MAVLink link to a flight controller (ArduPilot, PX4): its IMU, GPS, RC, outputs and "
-        "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False), replay=False),
+        "own estimate", device=DeviceConfig(port="", baud=921600, enabled=False), replay=False,
+        config_table="autopilot"),
 ))
 """The thesis aircraft (IMU, GPS and servo board on serial ports, the estimator, the control
 law) and, switched on by a URL, the link to a flight controller beside which it flies."""

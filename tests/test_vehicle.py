@@ -292,3 +292,36 @@ def test_a_device_added_as_one_module_and_one_row_flies_in_lockstep(tmp_path: Pa
         n = min(len(ours), len(theirs))
         assert n > 0.98 * max(len(ours), len(theirs)), (name, len(ours), len(theirs))
         assert ours[:n].tobytes() == theirs[:n].tobytes(), name
+
+
+def test_a_configuration_file_beside_an_autopilot_is_what_the_command_line_is(
+        tmp_path: Path) -> None:
+    """``[autopilot] url = ...`` (or ``[devices.autopilot] port = ...``) switches the link on
+    and the thesis devices whose slots it fills off, as ``--autopilot URL`` does; a thesis
+    device the file configures itself stays on; two spellings of one device are refused."""
+    from companion.core.config import ConfigError
+    from companion.vehicle import load_vehicle_config
+
+    def load(text: str) -> Config:
+        path = tmp_path / "companion.toml"
+        path.write_text(text, encoding="utf-8")
+        return load_vehicle_config(path)
+
+    for text in ('[autopilot]\nurl = "/dev/serial0,921600"\n',
+                 '[devices.autopilot]\nport = "/dev/serial0,921600"\nenabled = true\n'):
+        cfg = load(text)
+        link = cfg.devices["autopilot"]
+        assert (link.port, link.enabled) == ("/dev/serial0,921600", True), text
+        assert not any(cfg.devices[n].enabled for n in ("imu", "gps", "servo")), text
+    cfg = load('[autopilot]\nurl = "tcp:127.0.0.1:5760"\n[devices.gps]\nport = "/dev/ttyUSB0"\n')
+    assert cfg.devices["gps"].enabled and not cfg.devices["imu"].enabled
+    assert cfg.devices["autopilot"].port == "tcp:127.0.0.1:5760"
+    cfg = load("")  # without an autopilot, the thesis aircraft as before
+    assert all(cfg.devices[n].enabled for n in ("imu", "gps", "servo"))
+    assert not cfg.devices["autopilot"].enabled
+    with pytest.raises(ConfigError, match=r"\[autopilot\] and \[devices.autopilot\]"):
+        load('[autopilot]\nurl = "a"\n[devices.autopilot]\nport = "b"\n')
+    with pytest.raises(ConfigError, match="'url' and 'port'"):
+        load('[autopilot]\nurl = "a"\nport = "b"\n')
+    with pytest.raises(ConfigError, match="unknown setting 'devices.autopilot.speed'"):
+        load('[autopilot]\nurl = "a"\nspeed = 3\n')

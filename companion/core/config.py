@@ -100,17 +100,27 @@ class Config:
         return dataclasses.asdict(self)
 
 
-def load_config(path: Path | None, devices: Mapping[str, DeviceConfig] | None = None) -> Config:
+def load_config(path: Path | None, devices: Mapping[str, DeviceConfig] | None = None,
+                aliases: Mapping[str, str] | None = None) -> Config:
     """Read a TOML file over the defaults; unknown keys and wrong types are errors, by name.
 
     `devices` are the vehicle's devices with their defaults (`VehicleTable.device_defaults`):
     a ``[devices.<name>]`` table for another name is an error that lists them. None: the
-    devices are not checked here (the caller fills and checks them against its table)."""
+    devices are not checked here (the caller fills and checks them against its table).
+    `aliases`: top-level tables read as a device's (``[autopilot] url = ...`` is
+    ``[devices.autopilot] port = ..., enabled = true``), see `given_devices`."""
+    return load_config_given(path, devices, aliases)[0]
+
+
+def load_config_given(path: Path | None, devices: Mapping[str, DeviceConfig] | None = None,
+                      aliases: Mapping[str, str] | None = None) -> tuple[Config, set[str]]:
+    """`load_config`, and the names of the devices the file configures itself (so that the
+    caller can tell a device the user chose from one left at its defaults)."""
     cfg = Config()
     if devices is not None:
         cfg.devices = {name: dataclasses.replace(d) for name, d in devices.items()}
     if path is None:
-        return cfg
+        return cfg, set()
     try:
         data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as exc:
@@ -121,8 +131,35 @@ def load_config(path: Path | None, devices: Mapping[str, DeviceConfig] | None = 
         raise ConfigError(f"{path}: {exc}") from None
     except RecursionError:
         raise ConfigError(f"{path}: values nested too deeply to read") from None
+    _read_aliases(data, aliases or {}, str(path))
     _merge(cfg, data, str(path), "")
-    return cfg
+    given = data.get("devices", {})
+    return cfg, set(given) if isinstance(given, dict) else set()
+
+
+def _read_aliases(data: dict[str, Any], aliases: Mapping[str, str], where: str) -> None:
+    """Rewrite each ``[<alias>]`` table of `data` as ``[devices.<device>]``: ``url`` is the
+    port (a pymavlink connection string) and switches the device on; its other keys are the
+    device's own. Both spellings for one device are an error naming both."""
+    for alias, device in aliases.items():
+        table = data.pop(alias, None)
+        if table is None:
+            continue
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where}: '{alias}' must be a table")
+        devices = data.setdefault("devices", {})
+        if not isinstance(devices, dict):
+            raise ConfigError(f"{where}: 'devices' must be a table")
+        if device in devices:
+            raise ConfigError(f"{where}: [{alias}] and [devices.{device}] both configure "
+                              f"the {device}: keep one")
+        settings = dict(table)
+        if "url" in settings:
+            if "port" in settings:
+                raise ConfigError(f"{where}: [{alias}] has both 'url' and 'port': keep one")
+            settings["port"] = settings.pop("url")
+            settings.setdefault("enabled", True)
+        devices[device] = settings
 
 
 #: Settings that moved elsewhere: what a configuration still using them is told.
