@@ -18,7 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import select
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -36,10 +38,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from mavflood import flood  # noqa: E402
 from mavlink_bench import free_port  # noqa: E402
 
+from companion.drivers.imu import FMT_FAST  # noqa: E402
+from companion.drivers.imu_protocol import CYCLE_FRAMES  # noqa: E402
 from companion.logs import read_log  # noqa: E402
+from legacy_protocol.codec import Decoded, decode  # noqa: E402
+from legacy_protocol.messages import Imu  # noqa: E402
 
 SCALE = 5.0  # --fast
-IMU_HZ = 100.0
 GPS_HZ = 10.0
 
 
@@ -468,33 +473,75 @@ def row_sigterm(d: float) -> Row:
     return Row("SIGTERM", "stop mid-flight", figs)
 
 
+KILL_SETTLE_S = 0.5
+"""Host seconds between the last IMU count the bench heard and the SIGKILL: five of the log
+writer's 100 ms flush periods, so every record counted had been handed to the kernel."""
+
+
+def imu_samples_reported(sock: socket.socket, listen_s: float) -> int | None:
+    """The IMU thread's sample count in the last legacy IMU message heard on `sock` within
+    `listen_s` host seconds (None: none heard).
+
+    The driver publishes each IMU sample as one fast record (`FMT_FAST`) handed to imu.bin's
+    writer, then counts it as a cycle; the legacy IMU message carries that count. Heard from
+    outside while the process runs, it survives the kill, unlike anything the runtime keeps."""
+    count = None
+    deadline = time.monotonic() + listen_s
+    while (left := deadline - time.monotonic()) > 0:
+        if not select.select([sock], [], [], left)[0]:
+            break
+        decoded = decode(sock.recv(65536))
+        if isinstance(decoded, Decoded) and isinstance(decoded.payload, Imu):
+            count = decoded.payload.frame_count
+    return count
+
+
 def row_sigkill(d: float) -> Row:
-    kill_host: list[float] = []
+    """SIGKILL mid-flight: of the IMU records the writer had accepted `KILL_SETTLE_S` before
+    the kill (counted from outside, `imu_samples_reported`), how many read back. The count
+    comes from the runtime, not from the file: loss at the file's tail shows as missing."""
+    reported: list[int] = []
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
 
     def during(f: Flight) -> dict[str, str]:
         assert f.proc is not None
-        time.sleep(4.0)
-        kill_host.append(time.time())
+        time.sleep(3.0)
+        count = imu_samples_reported(sock, 1.0)  # the IMU message comes every 200 ms at 5x
+        if count is not None:
+            reported.append(count)
+        time.sleep(KILL_SETTLE_S)
         f.proc.kill()
         f.proc.wait(10)
         return {}
 
-    f, s, code, found = fly(d, [], during)
+    try:
+        f, s, code, found = fly(d, ["--legacy-dest", f"127.0.0.1:{sock.getsockname()[1]}"],
+                                during)
+    finally:
+        sock.close()
     figs = common(s, f, code)
     figs.update(found)
     fd = f.flight_dir()
     if fd is not None and (fd / "imu.bin").exists():
         log = read_log(fd / "imu.bin", salvage=True)
-        t = log.time_ns(1) / 1e9
-        if len(t):
-            # every record more than 0.5 s (flight clock) before the last one read back
-            old = t[t <= t[-1] - 0.5 * SCALE]
-            span = old[-1] - t[0] if len(old) else 0.0
-            expected = span * IMU_HZ + 1
-            figs["IMU records older than 0.5 s read back"] = (
-                f"{len(old)} of about {expected:.0f} ({len(old) / expected * 100:.1f} %)")
-            figs["damage"] = f"{log.skipped_bytes} bytes skipped"
-    return Row("SIGKILL", "4 s after the runtime answered", figs)
+        counter = log.data(FMT_FAST)["counter"].astype(np.int64)
+        # the device's sample counter (0..CYCLE_FRAMES-1): a record missing between two read back
+        gaps = int(np.sum((np.diff(counter) - 1) % CYCLE_FRAMES)) if len(counter) > 1 else 0
+        if reported:
+            accepted = reported[-1]
+            lost = max(0, accepted - len(counter))
+            figs[f"IMU records accepted {KILL_SETTLE_S:g} s before the kill"] = (
+                f"{accepted} (the IMU thread's count, heard on the legacy link)")
+            figs["of those, read back"] = (
+                f"{accepted - lost} of {accepted} ({lost} lost at the tail); "
+                f"{len(counter) - accepted + lost} later ones too")
+        else:
+            figs["IMU records accepted before the kill"] = "no IMU message heard"
+        figs["gaps in the device counter"] = f"{gaps} samples"
+        figs["damage"] = f"{log.skipped_bytes} bytes skipped"
+    return Row("SIGKILL", f"{KILL_SETTLE_S:g} s after the IMU count was heard, about 4 s "
+               "after the runtime answered", figs)
 
 
 def row_nominal_starts(n: int, duration_s: float, parallel: int = 2) -> Row:

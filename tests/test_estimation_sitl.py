@@ -92,14 +92,19 @@ def test_project_estimator_beats_imu_only_filters_in_turns(
     # level, so their error approaches the 30 deg bank
     assert vqf_turn > 15.0 and madgwick_turn > 15.0
     assert ours_turn < 0.05 * min(vqf_turn, madgwick_turn)
-    # loose absolute bounds (the benchmark measures about 0.2 deg, 0.25 deg, 0.09 m/s, 1.1 m)
-    assert rms_deg(ours.inclination_rad[scored]) < 1.0
-    assert ours_turn < 1.0
-    assert math.degrees(float(np.max(ours.inclination_rad[scored]))) < 3.0
+    # Absolute bounds. Measured on this flight with seeds 1 to 13 (the test flies seed 7):
+    # inclination RMS 0.13-0.28 deg (seed 7: 0.26), in the turns 0.14-0.28 (0.28), worst
+    # sample 0.38-0.99 deg (0.43), heading RMS 0.18-0.59 deg (0.35), velocity RMS 0.07-0.12 m/s
+    # (0.07), horizontal position RMS 0.44-1.72 m (0.78). Each bound is about 1.4x the worst
+    # seed: another platform's floating point or a harmless retune may move seed 7 within the
+    # seeds' spread, while an estimator that got half again worse fails.
+    assert rms_deg(ours.inclination_rad[scored]) < 0.4
+    assert ours_turn < 0.4
+    assert math.degrees(float(np.max(ours.inclination_rad[scored]))) < 1.4
     assert ours.heading_rad is not None and ours.vel_m_s is not None and ours.hpos_m is not None
-    assert rms_deg(ours.heading_rad[scored]) < 2.0
-    assert float(np.sqrt(np.mean(ours.vel_m_s[scored] ** 2))) < 0.3
-    assert float(np.sqrt(np.mean(ours.hpos_m[scored] ** 2))) < 3.0
+    assert rms_deg(ours.heading_rad[scored]) < 0.8
+    assert float(np.sqrt(np.mean(ours.vel_m_s[scored] ** 2))) < 0.17
+    assert float(np.sqrt(np.mean(ours.hpos_m[scored] ** 2))) < 2.4
     # numerically healthy all the way
     assert run.start_tick == 99  # one second of IMU averaging, a fix already there
     assert run.exceptions == 0 and run.non_finite == 0 and ours.non_finite == 0

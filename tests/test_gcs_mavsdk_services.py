@@ -33,6 +33,7 @@ from test_gcs_mavsdk import mavsdk_on
 from companion.logs.archive import FlightArchive
 from companion.logs.cli import main as logs_main
 from companion.logs.writer import LogService
+from gcs_bridge.bridge_params import BRIDGE_PARAMS
 from gcs_bridge.services.console import PROMPT
 
 OLD = "20261123T100000Z"
@@ -260,4 +261,9 @@ def test_attitude_default_rate(flights: Flights) -> None:
         assert wait_for(lambda: window()[-1] - start >= 2.0, 5.0)
         w = window()
         rate_hz = (len(w) - 1) / (w[-1] - w[0])
-        assert rate_hz >= 10.0, f"{rate_hz:.1f} Hz over {w[-1] - w[0]:.2f} s"
+        # MAV_ATT_HZ defaults to 20 Hz. The rate is taken on arrival, in MAVSDK's callback
+        # thread, over 2 s or more: a busy core delays single messages without losing them, so
+        # it holds within 15 % (a stream at half or double its rate fails)
+        default_hz = float(next(p.default for p in BRIDGE_PARAMS if p.name == "MAV_ATT_HZ"))
+        assert abs(rate_hz - default_hz) <= 0.15 * default_hz, \
+            f"{rate_hz:.1f} Hz over {w[-1] - w[0]:.2f} s, MAV_ATT_HZ {default_hz:g}"

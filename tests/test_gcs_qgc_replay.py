@@ -39,6 +39,7 @@ import pytest
 from conftest import free_udp_port
 from support.synthetic_vehicle import SyntheticVehicle
 
+from companion import __version__
 from companion.core.params import int_param
 from gcs_bridge.dialect import mavlink
 
@@ -495,8 +496,14 @@ def test_1_autopilot_version(qgc: Replay) -> None:
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     assert msg is not None, f"AUTOPILOT_VERSION not sent within {MESSAGE_AFTER_ACK_S} s of the ACK"
     assert msg.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-    major = (msg.flight_sw_version >> 24) & 0xFF
-    assert msg.flight_sw_version == 0 or 0 <= major < 256  # QGC splits it into 4 bytes
+    # QGC splits flight_sw_version into 4 bytes: major, minor, patch, FIRMWARE_VERSION_TYPE;
+    # they must spell the package's version, not merely fit in a byte each
+    word = msg.flight_sw_version
+    shown = ((word >> 24) & 0xFF, (word >> 16) & 0xFF, (word >> 8) & 0xFF)
+    release = re.match(r"(\d+)\.(\d+)\.(\d+)", __version__)
+    assert release is not None, __version__
+    assert shown == tuple(int(p) for p in release.groups()), (hex(word), __version__)
+    assert word & 0xFF == mavlink.FIRMWARE_VERSION_TYPE_DEV, hex(word)
 
 
 def test_2_protocol_version_for_qgc_5(qgc: Replay) -> None:
@@ -511,10 +518,14 @@ def test_2_protocol_version_for_qgc_5(qgc: Replay) -> None:
 def test_3_camera_probe_is_refused_at_once(qgc: Replay) -> None:
     """QGCCameraManager probes component 1 on its first HEARTBEAT, alternating the two forms;
     an immediate refusal keeps it from holding REQUEST_MESSAGE while the sequence runs."""
+    # docs/qgc-connection.md #4: UNSUPPORTED at once, both forms (ACCEPTED would make QGC wait
+    # for CAMERA_INFORMATION and retry for about 30 s)
     _mark, ack = qgc.command(CMD_REQUEST_CAMERA_INFORMATION, 1)
     assert ack is not None, "MAV_CMD_REQUEST_CAMERA_INFORMATION not acknowledged"
+    assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
     ack, msg = qgc.request_message(MSG_CAMERA_INFORMATION)
-    assert ack.result != mavlink.MAV_RESULT_ACCEPTED or msg is not None
+    assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+    assert msg is None
 
 
 def test_4_available_modes_step_ends_in_one_round_trip_or_a_complete_walk(qgc: Replay) -> None:
@@ -668,8 +679,10 @@ def test_8_parameter_list_complete_and_bytewise(qgc: Replay) -> None:
 
 def test_9_gimbal_probe_is_refused_at_once(qgc: Replay) -> None:
     """GimbalController::_requestGimbalInformation, after the parameters."""
+    # docs/qgc-connection.md #12: UNSUPPORTED at once, and no message
     ack, msg = qgc.request_message(MSG_GIMBAL_MANAGER_INFORMATION)
-    assert ack.result != mavlink.MAV_RESULT_ACCEPTED or msg is not None
+    assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+    assert msg is None
 
 
 def mission_reply(mission_type: int) -> Callable[[Any], bool]:

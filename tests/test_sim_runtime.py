@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -315,8 +316,14 @@ def test_several_vehicles(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
     dirs = sorted((tmp_path / "flights").iterdir())
     assert len(dirs) == 2
-    ids = sorted(json.loads((d / "run.json").read_text())["config"]["vehicle"]["id"] for d in dirs)
-    assert ids == [1, 2]
+    configs = [json.loads((d / "run.json").read_text())["config"] for d in dirs]
+    assert sorted(c["vehicle"]["id"] for c in configs) == [1, 2]
     for d in dirs:
         assert read_log(d / "imu.bin").closed_cleanly
-    assert (tmp_path / "params-v1.parm").exists() or not list(tmp_path.glob("params-v*.parm"))
+    # each aircraft keeps its parameters in a file of its own: one shared file would have the
+    # two overwrite each other's vehicle id and trims
+    for c in configs:
+        vid = c["vehicle"]["id"]
+        assert c["params"]["file"] == f"params-v{vid}.parm"
+        text = (tmp_path / f"params-v{vid}.parm").read_text()
+        assert re.search(rf"^SYS_VEHICLE_ID\s+{vid}$", text, re.M), text[:300]

@@ -19,8 +19,26 @@ from typing import Any
 
 from conftest import free_udp_port
 
+from companion.drivers.gps import FMT_SOLUTION
+from companion.drivers.imu import FMT_FAST
+from companion.logs import read_log
+
 SPEED = 20.0
 DURATION_S = 80  # simulated: 4 s of flight at 20x, plus start-up
+
+
+def achieved(tmp: Path) -> tuple[float, float, float]:
+    """(flight-clock seconds of IMU samples per host second, IMU Hz, GPS Hz in the flight's
+    clock) of the flight in `tmp`. The host window runs from run.json (written as the runtime
+    starts) to summary.json (written once it has shut down), so the interpreter's start-up is
+    not counted against the runtime; its shutdown is, which only lowers the figure."""
+    flight = sorted((tmp / "flights").glob("*/"))[-1]
+    host_s = (flight / "summary.json").stat().st_mtime - (flight / "run.json").stat().st_mtime
+    imu_t = read_log(flight / "imu.bin").time_ns(FMT_FAST) / 1e9
+    gps_t = read_log(flight / "gps.bin").time_ns(FMT_SOLUTION) / 1e9
+    span_s = float(imu_t[-1] - imu_t[0])
+    gps_span_s = float(gps_t[-1] - gps_t[0])
+    return span_s / host_s, (len(imu_t) - 1) / span_s, (len(gps_t) - 1) / gps_span_s
 
 
 def fly_at_speed(tmp: Path, speed: float, duration_s: int) -> dict[str, Any]:
@@ -40,6 +58,17 @@ def fly_at_speed(tmp: Path, speed: float, duration_s: int) -> dict[str, Any]:
 def test_twenty_times_real_time_restarts_no_thread(tmp_path: Path) -> None:
     summary = fly_at_speed(tmp_path, SPEED, DURATION_S)
     assert summary["clock_scale"] == SPEED
+    # The flight really ran faster than real time. On this 2-core machine, shared with other
+    # jobs, 20x is not reliably reached (17x measured with the machine's load average near 8):
+    # more than 5 flight seconds per host second tells a real speed-up from a flight paced
+    # at real time under a 20x label; the exact figure belongs to a benchmark.
+    speedup, imu_hz, gps_hz = achieved(tmp_path)
+    assert speedup > 5.0, f"{speedup:.1f} flight seconds per host second at --speed {SPEED:g}"
+    # ... and the devices delivered in the flight's clock: IMU 100 Hz and GPS 10 Hz nominal,
+    # measured 81-96 Hz and 8-10 Hz at 20x on this loaded machine (a device thread that cannot
+    # keep up at 2,000 host frames a second loses frames, it does not slow the clock); half the
+    # nominal rate tells a device running at its host-time rate (5 Hz, 0.5 Hz) from a busy one
+    assert imu_hz > 50.0 and gps_hz > 5.0, f"IMU {imu_hz:.1f} Hz, GPS {gps_hz:.1f} Hz"
     threads = {t["name"]: t for t in summary["threads"]}
     for name in ("mav0rx", "mav0tx", "legacy-rx", "legacy-tx"):
         assert name in threads, sorted(threads)
