@@ -59,8 +59,15 @@ MIN_WINDOW_HOST_S = 0.1
 """The shortest watchdog window in host seconds. In flight (scale 1) every `*_WDG_MS` is longer;
 in a simulation at `--speed 20` the IMU's 500 ms window would be 25 ms of host time, shorter than
 the interpreter and the OS may keep a healthy thread from running on a busy machine, and the
-thread would be restarted for the host's hiccup. So a window lasts at least this much host time
-(at 20x: 2 s of flight time for the IMU); a lockstep flight has no host time to hiccup."""
+thread would be restarted for the host's hiccup. So a window lasts at least this much host time;
+a lockstep flight has no host time to hiccup."""
+STALL_MIN_HOST_S = 0.25
+"""With a clock faster than the host's (`--speed S` above 1), a thread is judged stalled only
+after this much host time without a cycle or a heartbeat, however short its window: at 5x the
+IMU's 500 ms window is 100 ms of host time, and on a 2-core machine with other work healthy IMU
+and GPS threads were kept from running that long and restarted (tests/test_sim_runtime.py).
+Silence (a thread that loops without data) is still judged on the window itself, and in flight
+(scale 1) the thresholds are the parameters' own."""
 
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
@@ -141,6 +148,8 @@ class ThreadManager:
         self._seen_beats: dict[str, int] = {}
         self._seen_bytes: dict[str, int] = {}
         self._silent: dict[str, bool] = {}
+        self._progress_host_ns: dict[str, int] = {}
+        """Host time of the last check that saw a thread cycle or beat (`_host_hiccup`)."""
         self._armed: dict[str, bool] = {}  # the periodic section's first window has begun
         self._restart_times: dict[str, deque[float]] = {}
         self._abandoned_workers: list[Worker] = []
@@ -364,6 +373,15 @@ class ThreadManager:
             self._emit(EventKind.STARTED, t.name)
         return True
 
+    def _host_hiccup(self, t: ManagedThread) -> bool:
+        """A window with no cycle and no heartbeat that is still too short, in host time, to
+        be a stall (`STALL_MIN_HOST_S`, only with a clock faster than the host's)."""
+        clock = self.ctx.clock
+        if clock.lockstep or clock.scale <= 1.0:
+            return False
+        since = self._progress_host_ns.get(t.name)
+        return since is not None and time.monotonic_ns() - since < STALL_MIN_HOST_S * 1e9
+
     def _schedule_check(self, t: ManagedThread, now_ns: int) -> None:
         window_ns = int(t.watchdog_ms * 1e6)
         clock = self.ctx.clock
@@ -503,6 +521,7 @@ class ThreadManager:
                 # 1 s of IMU averaging against its 1000 ms watchdog) would otherwise be judged
                 # on a window in which its first step had no time to finish.
                 self._armed[t.name] = True
+                self._progress_host_ns[t.name] = time.monotonic_ns()
                 self._seen_cycles[t.name] = cycles
                 self._seen_beats[t.name] = beats
                 self._seen_bytes[t.name] = t.io_bytes()
@@ -523,6 +542,8 @@ class ThreadManager:
                     else:
                         self._emit(EventKind.SILENT, t.name, f"no data for {t.watchdog_ms} ms")
             else:
+                if self._host_hiccup(t):
+                    continue  # too little host time yet to call it a stall: the next window
                 t.alive_at_last_check = False
                 t.stalls += 1
                 self._emit(EventKind.STALL, t.name, f"no cycle in {t.watchdog_ms} ms")
@@ -531,6 +552,7 @@ class ThreadManager:
             self._seen_cycles[t.name] = cycles
             self._seen_beats[t.name] = beats
             self._seen_bytes[t.name] = t.io_bytes()
+            self._progress_host_ns[t.name] = time.monotonic_ns()
 
     def _process_commands(self) -> None:
         while (cmd := self.commands.get_nowait()) is not None:
