@@ -1,9 +1,9 @@
 """The replay's log readers on real logs of every kind, cut, damaged and malformed.
 
-Real files (tests/data/replay/, provenance in tests/data/README.md): an ArduPlane DataFlash log
-from pymavlink's tests (ends inside its last message, as the issue's logs did), PX4 ULogs of
-v1.11 and v1.14 from pyulog's tests, and an ArduPlane telemetry log (the project's recorded
-SITL link, stamped as a ground station does). Each reading is checked against what pymavlink
+Real files (tests/data/replay/, provenance in tests/data/README.md): an ArduPlane 3.8 DataFlash
+log from pymavlink's tests (ends inside its last message, as the issue's logs did), PX4 ULogs
+of v1.11 (a CubeOrange) and v1.15-dev (SITL) from pyulog's tests, and an ArduPlane telemetry
+log (the project's recorded SITL link, stamped as a ground station does). Each reading is checked against what pymavlink
 or pyulog read from the same bytes, so the readers are checked against another reading, not
 against themselves. The older DataFlash generation (ArduCopter 3.1: TimeMS, IMU/IMU2 types,
 GPS dated by GPS week and boot time T) is written here from its documented layout.
@@ -30,10 +30,10 @@ from tests.support.replay_logs import dataflash_head, stamp_capture_as_tlog
 
 REPO = Path(__file__).resolve().parents[1]
 DF_REAL = ("replay", "arduplane-pymavlink-test.bin")
-ULOG_114 = ("replay", "px4-v1.14-events.ulg")
-ULOG_111 = ("replay", "px4-v1.11-small.ulg")
+ULOG_115 = ("replay", "px4-v1.15dev-sitl.ulg")
+ULOG_111 = ("replay", "px4-v1.11-cubeorange.ulg")
 TLOG = ("replay", "arduplane-sitl.tlog")
-ALL_REAL = [DF_REAL, ULOG_114, ULOG_111, TLOG, ("px4-ulog", "sample.ulg")]
+ALL_REAL = [DF_REAL, ULOG_115, ULOG_111, TLOG, ("px4-ulog", "sample.ulg")]
 
 
 def _copy(tmp_path: Path, parts: tuple[str, ...], data: bytes | None = None) -> Path:
@@ -104,7 +104,7 @@ def test_real_tlog_matches_pymavlink() -> None:
     assert fl.skipped == [] and fl.damage is None
 
 
-@pytest.mark.parametrize("parts", [ULOG_114, ULOG_111])
+@pytest.mark.parametrize("parts", [ULOG_115, ULOG_111])
 def test_real_ulogs_of_two_px4_versions(parts: tuple[str, ...]) -> None:
     from pyulog import ULog
 
@@ -173,7 +173,7 @@ def test_small_chunks_read_the_same(chunk: int) -> None:
     ta, tb = walk_tlog(io.BytesIO(tl)), walk_tlog(io.BytesIO(tl), chunk)
     assert ta.frames == tb.frames and ta.skipped == tb.skipped
     assert {k: len(v) for k, v in ta.series.items()} == {k: len(v) for k, v in tb.series.items()}
-    ul = data_file(*ULOG_114).read_bytes()
+    ul = data_file(*ULOG_115).read_bytes()
     ul = ul[:400_000] + b"\xee" * 50 + ul[400_000:]
     assert walk_ulog(io.BytesIO(ul)) == walk_ulog(io.BytesIO(ul), chunk)
 
@@ -269,7 +269,7 @@ def test_bad_inputs_are_one_line_errors(tmp_path: Path) -> None:
     head_only.write_bytes(b"\xa3\x95\x80" + b"\x00" * 10)
     assert _one_error(head_only, "cut short").offset == 0
     ulog_head = tmp_path / "head.ulg"
-    ulog_head.write_bytes(data_file(*ULOG_114).read_bytes()[:2000])
+    ulog_head.write_bytes(data_file(*ULOG_115).read_bytes()[:2000])
     _one_error(ulog_head, "sensor_combined")
     no_gps = tmp_path / "no_gps.bin"
     no_gps.write_bytes(b"".join(m for m in _split(log31) if m[2] != 131))
