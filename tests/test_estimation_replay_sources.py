@@ -26,7 +26,7 @@ from companion.estimation.replay.sources import LogReadError, close_dfreader, re
 from companion.estimation.replay.tlog import walk_tlog
 from companion.estimation.replay.ulog import walk_ulog
 from tests.conftest import data_file
-from tests.support.replay_logs import dataflash_head, stamp_capture_as_tlog
+from tests.support.replay_logs import dataflash_head, repeat_dataflash, stamp_capture_as_tlog
 
 REPO = Path(__file__).resolve().parents[1]
 DF_REAL = ("replay", "arduplane-pymavlink-test.bin")
@@ -190,7 +190,7 @@ def _msg(type_id: int, letters: str, *values: float) -> bytes:
     return b"\xa3\x95" + bytes([type_id]) + struct.pack(st, *values)
 
 
-def copter31_log(seconds: float = 20.0) -> bytes:
+def copter31_log(seconds: float = 20.0, imu0_every: int = 1) -> bytes:
     """An ArduCopter 3.1-style log: IMU and IMU2 types with TimeMS (boot ms), GPS whose TimeMS
     is the GPS time of week (with Week) and whose boot time is `T`, ATT in hundredths of a
     degree. The layouts are ArduCopter 3.1's (LogStructure.h of that release)."""
@@ -203,7 +203,8 @@ def copter31_log(seconds: float = 20.0) -> bytes:
     boot_ms = 30_000
     for k in range(int(seconds * 50)):
         t = boot_ms + 20 * k
-        out.append(_msg(129, imu_l, t, 0.01, 0.0, 0.0, 0.0, 0.0, -9.81))
+        if k % imu0_every == 0:
+            out.append(_msg(129, imu_l, t, 0.01, 0.0, 0.0, 0.0, 0.0, -9.81))
         out.append(_msg(130, imu_l, t, 0.02, 0.0, 0.0, 0.0, 0.0, -9.80))
         if k % 10 == 0:
             out.append(_msg(131, gps_l, 3, 345_600_000 + t, 1800, 9, 150, 473977420, 85455940,
@@ -233,6 +234,16 @@ def test_an_arducopter_31_log_reads_by_its_fmt_table(tmp_path: Path) -> None:
     assert np.degrees(att.yaw_rad[0]) == pytest.approx(90.0)
     assert any("0: 1000, 1: 1000; instance 0 used" in n for n in fl.notes)
     assert read_flight_log(path, imu_instance=1).imu.gyro_rad_s[0, 0] == pytest.approx(0.02)
+
+
+def test_an_imu_logged_at_a_lower_rate_is_passed_over(tmp_path: Path) -> None:
+    path = tmp_path / "slow_imu0.bin"
+    path.write_bytes(copter31_log(4.0, imu0_every=5))
+    fl = read_flight_log(path)
+    assert fl.imu.source == "IMU[1]" and len(fl.imu.t_us) == 200
+    assert any("0: 40, 1: 200; instance 1 used (instance 0 has only 40 samples)" in n
+               for n in fl.notes)
+    assert read_flight_log(path, imu_instance=0).imu.source == "IMU[0]"
 
 
 # ------------------------------------------------------------------ bad input
@@ -328,6 +339,16 @@ def test_dataflash_head_cuts_at_a_record(tmp_path: Path) -> None:
     path.write_bytes(head)
     fl = read_flight_log(path)
     assert fl.skipped == [] and (fl.imu.t_us[-1] - fl.imu.t_us[0]) == 5_000_000
+
+
+def test_repeated_dataflash_is_one_long_flight(tmp_path: Path) -> None:
+    """The benchmark's 20-minute log: copies of the real one, times shifted, FMTs once."""
+    path = tmp_path / "long.bin"
+    path.write_bytes(repeat_dataflash(data_file(*DF_REAL).read_bytes(), 5, 1_000_000))
+    fl = read_flight_log(path)
+    assert len(fl.imu.t_us) == 5 * 45 and fl.skipped == []
+    assert np.all(np.diff(fl.imu.t_us) > 0)
+    assert fl.imu.t_us[-1] - fl.imu.t_us[0] > 4_800_000
 
 
 def test_stamped_capture_is_a_tlog_pymavlink_reads(tmp_path: Path) -> None:
