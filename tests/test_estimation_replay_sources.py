@@ -236,6 +236,47 @@ def test_an_arducopter_31_log_reads_by_its_fmt_table(tmp_path: Path) -> None:
     assert read_flight_log(path, imu_instance=1).imu.gyro_rad_s[0, 0] == pytest.approx(0.02)
 
 
+def copter4x_log(seconds: float = 4.0) -> bytes:
+    """An ArduPilot 4.x-style log: one IMU type with instance `I` and temperature `T`, GPS with
+    `I` and GPS week, EKF3's XKF1 for two cores `C` (layouts of ArduPilot 4.1's LogStructure)."""
+    imu_l, gps_l, xkf_l = "QBffffffIIfBBHH", "QBBIHBcLLeffffB", "QBccCfffffffccce"
+    out = [_fmt(140, "IMU", imu_l, "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,"
+                                   "AHz"),
+           _fmt(141, "GPS", gps_l, "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,"
+                                   "Yaw,U"),
+           _fmt(142, "XKF1", xkf_l, "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH")]
+    for k in range(int(seconds * 400)):
+        t = 5_000_000 + 2500 * k
+        for inst in (0, 1, 2):
+            out.append(_msg(140, imu_l, t, inst, 0.001 * inst, 0, 0, 0, 0, -9.8, 0, 0,
+                            41.5 + inst, 1, 1, 400, 400))
+        if k % 80 == 0:
+            out.append(_msg(141, gps_l, t, 0, 3, 12345, 2200, 14, 80, 473977420, 85455940,
+                            48812, 0.1, 10.0, 0.02, 0.0, 1))  # hundredths and 1e-7 as logged
+        if k % 40 == 0:
+            for core in (0, 1):
+                out.append(_msg(142, xkf_l, t, core, 150 + 100 * core, -200, 18100, 0, 0, 0, 0,
+                                0, 0, 0, 0, 0, 0, 0))
+    return b"".join(out)
+
+
+def test_an_ardupilot_4x_log_with_instances_and_cores(tmp_path: Path) -> None:
+    path = tmp_path / "ap4.bin"
+    path.write_bytes(copter4x_log())
+    fl = read_flight_log(path)
+    assert fl.imu.source == "IMU[0]" and len(fl.imu.t_us) == 1600
+    assert any("0: 1600, 1: 1600, 2: 1600; instance 0 used" in n for n in fl.notes)
+    assert fl.temperature is not None and fl.temperature.temperature_c[0] == pytest.approx(41.5)
+    assert fl.gps is not None and fl.gps.source == "GPS[0]" and fl.gps.t_us[0] == 5_000_000
+    assert fl.gps.valid.all() and fl.gps.alt_m[0] == pytest.approx(488.12)
+    (xkf1,) = fl.references
+    assert xkf1.name == "XKF1" and len(xkf1.t_us) == 40
+    assert np.degrees(xkf1.roll_rad[0]) == pytest.approx(1.5)  # core 0's
+    assert np.degrees(xkf1.yaw_rad[0]) == pytest.approx(181.0)
+    assert "XKF1 cores [0, 1] logged: core 0 used" in fl.notes
+    assert read_flight_log(path, imu_instance=2).imu.gyro_rad_s[0, 0] == pytest.approx(0.002)
+
+
 def test_an_imu_logged_at_a_lower_rate_is_passed_over(tmp_path: Path) -> None:
     path = tmp_path / "slow_imu0.bin"
     path.write_bytes(copter31_log(4.0, imu0_every=5))
@@ -282,6 +323,14 @@ def test_bad_inputs_are_one_line_errors(tmp_path: Path) -> None:
     ulog_head = tmp_path / "head.ulg"
     ulog_head.write_bytes(data_file(*ULOG_115).read_bytes()[:2000])
     _one_error(ulog_head, "sensor_combined")
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    mav = dialect.MAVLink(None, srcSystem=1)
+    heartbeats = b"".join(struct.pack(">Q", 1_700_000_000_000_000 + k * 1_000_000)
+                          + mav.heartbeat_encode(1, 3, 0, 0, 0).pack(mav) for k in range(5))
+    hb_only = tmp_path / "heartbeats.tlog"
+    hb_only.write_bytes(heartbeats)
+    _one_error(hb_only, "MAVLink telemetry log", "no IMU messages", "in 5 frames")
     no_gps = tmp_path / "no_gps.bin"
     no_gps.write_bytes(b"".join(m for m in _split(log31) if m[2] != 131))
     fl = read_flight_log(no_gps)
