@@ -156,6 +156,52 @@ def test_damage_in_the_middle_is_skipped_and_reported(tmp_path: Path,
     assert info.value.offset == inner[0].offset
 
 
+@pytest.mark.parametrize("parts", [DF_REAL, ULOG_115, TLOG])
+def test_megabytes_of_noise_are_skipped_exactly(tmp_path: Path, parts: tuple[str, ...]) -> None:
+    """2 MiB of random bytes between two whole records: no false resynchronisation inside them
+    (noise often looks like one record; the readers ask for several in a row, a known message
+    with a good CRC, a time near the last one), so exactly the noise is skipped."""
+    data = data_file(*parts).read_bytes()
+    whole = read_flight_log(data_file(*parts))
+    at = _boundary_before(parts, data, len(data) // 2)
+    noise = np.random.default_rng(7).bytes(2 << 20)
+    fl = read_flight_log(_copy(tmp_path, parts, data[:at] + noise + data[at:]))
+    inner = [(s.offset, s.length) for s in fl.skipped if not s.tail]
+    assert inner == [(at, len(noise))]
+    assert len(fl.imu.t_us) == len(whole.imu.t_us)
+
+
+def _boundary_before(parts: tuple[str, ...], data: bytes, limit: int) -> int:
+    """The start of the last record before `limit`, by each format's own framing."""
+    if parts == TLOG:
+        off = 0
+        while True:
+            ln = data[off + 9]
+            size = 8 + (8 + ln if data[off + 8] == 0xFE else 12 + ln + (13 if data[off + 10] & 1
+                                                                        else 0))
+            if off + size > limit:
+                return off
+            off += size
+    if parts == DF_REAL:
+        from companion.estimation.replay.dfwalk import parse_fmt
+
+        lengths, off = {0x80: 89}, 0
+        while True:
+            ln = lengths[data[off + 2]]
+            if data[off + 2] == 0x80:
+                f = parse_fmt(data[off + 3:off + ln])
+                lengths[f.type_id] = f.length
+            if off + ln > limit:
+                return off
+            off += ln
+    off = 16
+    while True:
+        size = 3 + (data[off] | data[off + 1] << 8)
+        if off + size > limit:
+            return off
+        off += size
+
+
 @pytest.mark.parametrize("chunk", [61, 977])
 def test_small_chunks_read_the_same(chunk: int) -> None:
     """Records split across chunk boundaries: the walks carry the partial record over."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -45,9 +46,11 @@ ULOG_TYPES = frozenset(b"BFIMPQARDLCSO")
 CHUNK_BYTES = 1 << 20
 RESYNC_CHAIN = 8
 FIXED_SIZES = {ord("S"): 8, ord("O"): 2, ord("R"): 2}  # sync magic, dropout ms, msg id
-DATA_TYPES = frozenset(b"DALC")
-MAX_DATA_SIZE = 8192
-"""No uORB topic, subscription or log string comes near this; a size read from noise does."""
+MAX_RESYNC_SIZE = 8192
+"""No uORB topic, subscription or log string comes near this; a size read from noise does. A
+longer message (a big info message) is still read in the chain, only not resynchronised on."""
+CANDIDATE = re.compile(b"..[" + bytes(sorted(ULOG_TYPES)) + b"]", re.DOTALL)
+"""Where a message may start: its type byte is one of ULog's (searched in C, not byte by byte)."""
 REFERENCES = ("vehicle_attitude", "vehicle_attitude_groundtruth")
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 
@@ -69,7 +72,7 @@ class _ChainWalk:
                 return (p == n) if final else None
             typ, size = buf[p + 2], buf[p] | buf[p + 1] << 8
             if typ not in ULOG_TYPES or FIXED_SIZES.get(typ, size) != size or (
-                    typ in DATA_TYPES and size > MAX_DATA_SIZE):
+                    size > MAX_RESYNC_SIZE):
                 return False
             p += 3 + size
         return True
@@ -80,15 +83,17 @@ class _ChainWalk:
         types = ULOG_TYPES
         while True:
             if self.bad_start is not None:
-                while off < n:
+                while True:
+                    m = CANDIDATE.search(buf, off)
+                    if m is None:
+                        return max(off, n - 2)
+                    off = m.start()
                     ok = self._plausible(buf, off, final)
                     if ok is None:
                         return off
                     if ok:
                         break
                     off += 1
-                else:
-                    return off
                 self.skipped.append(SkippedRegion(self.bad_start, base + off - self.bad_start,
                                                   "unreadable bytes (no ULog message where the "
                                                   "previous one ended)"))
