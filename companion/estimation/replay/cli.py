@@ -17,7 +17,7 @@ EXIT_OUTPUT = 1
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "replay", help="run a PX4 ULog or ArduPilot DataFlash log through our estimator",
+        "replay", help="run a PX4, ArduPilot or MAVLink telemetry log through our estimator",
         description="Feed a flight controller's IMU and GPS samples through the estimator "
                     "this runtime flies (GPS/INS ESKF; IMU-only attitude when the log has no "
                     "GPS fix) and compare its attitude with the flight controller's own. "
