@@ -17,12 +17,12 @@ EXIT_OUTPUT = 1
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "replay", help="run a PX4 ULog or ArduPilot DataFlash log through our estimator",
+        "replay", help="run a PX4, ArduPilot or MAVLink telemetry log through our estimator",
         description="Feed a flight controller's IMU and GPS samples through the estimator "
                     "this runtime flies (GPS/INS ESKF; IMU-only attitude when the log has no "
                     "GPS fix) and compare its attitude with the flight controller's own. "
                     "Writes estimate.bin, summary.json and replay.png.")
-    p.add_argument("log", type=Path, help="a PX4 .ulg or an ArduPilot DataFlash .bin log")
+    p.add_argument("log", type=Path, help="a PX4 .ulg, an ArduPilot DataFlash .bin or a MAVLink .tlog")
     p.add_argument("-o", "--output", type=Path, metavar="DIR",
                    help="output directory (default: <log stem>-replay/ next to the log)")
     p.add_argument("--estimator", choices=["auto", "eskf", "attitude"], default="auto",
@@ -33,8 +33,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="ArduPilot IMU instance to use (default: the first logged)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="an estimator parameter (EST_GPS_LAG=0.1 or GPS_LAG=0.1); repeatable")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a log with a damaged or cut-short message (default: read what "
+                        "is whole, skip damage and report it with byte offsets)")
     p.add_argument("--salvage", action="store_true",
-                   help="replay what reads from a cut-short or damaged log instead of failing")
+                   help="accepted for older scripts: reading what is whole is the default")
     p.add_argument("--no-plot", action="store_true", help="do not draw replay.png")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=cmd_replay)
@@ -77,10 +80,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_LOG
     try:
-        flight = read_flight_log(args.log, salvage=args.salvage, imu_instance=args.imu_instance)
+        flight = read_flight_log(args.log, strict=args.strict, imu_instance=args.imu_instance)
     except LogReadError as exc:
-        hint = "" if args.salvage or exc.offset in (None, 0) else " (--salvage replays the rest)"
-        print(f"error: {exc}{hint}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_LOG
     if len(flight.imu.t_us) < 2:
         print(f"error: {args.log}: fewer than 2 IMU samples", file=sys.stderr)
@@ -111,7 +113,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
              if gps else "; no GPS"))
     print(f"estimator: {ESTIMATOR_LABELS[result.estimator]} ({result.estimator_reason})")
     if flight.damage:
-        print(f"warning: salvaged: {flight.damage}")
+        print(f"warning: damaged log: {flight.damage}")
     for note in result.notes:
         print(f"note: {note}")
     if result.comparisons:
