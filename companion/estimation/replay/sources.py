@@ -348,6 +348,17 @@ def _df_time_us(m: Any) -> int | None:
     return int(t)
 
 
+def _df_gps_time_us(m: Any, t_us: int) -> int:
+    """A GPS message's boot time. Before TimeUS (ArduPilot 3.2 and older) a GPS message's
+    TimeMS is the receiver's GPS time of week and its boot time is the field ``T`` (ms): read
+    as boot time, every fix would lie days after the IMU samples and never be fused."""
+    if getattr(m, "TimeUS", None) is None:
+        boot_ms = getattr(m, "T", None)
+        if boot_ms is not None:
+            return int(boot_ms) * 1000
+    return t_us
+
+
 def close_dfreader(reader: Any) -> None:
     """Release a DFReader's file: it keeps an mmap and the file open until collected."""
     for name in ("data_map", "filehandle"):
@@ -355,6 +366,17 @@ def close_dfreader(reader: Any) -> None:
         if handle is not None:
             with contextlib.suppress(Exception):
                 handle.close()
+
+
+def _best_gps_instance(rows: list[tuple[Any, ...]]) -> tuple[list[int], int, str]:
+    """The instances logged, the one to use and why: the one with the most 3-D fixes (what
+    ArduPilot's GPS auto-switch favours; the log does not say which one the EKF fused), the
+    lowest on a tie (the primary)."""
+    inst = sorted({int(r[0]) for r in rows})
+    good = {i: sum(1 for r in rows if r[0] == i and (r[2] or 0) >= 3) for i in inst}
+    use = max(inst, key=lambda i: (good[i], -i))
+    why = ", ".join(f"{good[i]} 3-D fixes on {i}" for i in inst)
+    return inst, use, f"most 3-D fixes: {why}"
 
 
 def read_dataflash(path: Path, *, salvage: bool = False,
@@ -386,6 +408,7 @@ def read_dataflash(path: Path, *, salvage: bool = False,
                     rows["IMU"].append((inst, t, m.GyrX, m.GyrY, m.GyrZ, m.AccX, m.AccY,
                                         m.AccZ, getattr(m, "T", math.nan)))
                 elif name == "GPS":
+                    t = _df_gps_time_us(m, t)
                     rows[name].append((int(getattr(m, "I", 0) or 0), t,
                                        *(getattr(m, f, math.nan) for f in
                                          ("Status", "NSats", "HDop", "Lat", "Lng", "Alt", "Spd",
@@ -416,16 +439,16 @@ def read_dataflash(path: Path, *, salvage: bool = False,
     temperature = _temperature(a[:, 0], a[:, 7], f"IMU[{use}].T")
     gps = None
     if rows["GPS"]:
-        g_inst = sorted({r[0] for r in rows["GPS"]})
+        g_inst, g_use, why = _best_gps_instance(rows["GPS"])
         if len(g_inst) > 1:
-            notes.append(f"GPS instances {g_inst} logged: instance {g_inst[0]} used")
-        g = np.array([r[1:] for r in rows["GPS"] if r[0] == g_inst[0]], dtype=float)
+            notes.append(f"GPS instances {g_inst} logged: instance {g_use} used ({why})")
+        g = np.array([r[1:] for r in rows["GPS"] if r[0] == g_use], dtype=float)
         n = len(g)
         gps = GpsSeries(
             t_us=g[:, 0].astype(np.int64), fix=_fix_code(g[:, 1]), sats=g[:, 2],
             hdop=g[:, 3], lat_deg=g[:, 4], lon_deg=g[:, 5], alt_m=g[:, 6],
             h_std_m=_nan(n), v_std_m=_nan(n), vn_m_s=_nan(n), ve_m_s=_nan(n),
-            vd_m_s=g[:, 9], speed_m_s=g[:, 7], course_deg=g[:, 8], source=f"GPS[{g_inst[0]}]")
+            vd_m_s=g[:, 9], speed_m_s=g[:, 7], course_deg=g[:, 8], source=f"GPS[{g_use}]")
     refs = []
     for name in ("ATT", "AHR2", "XKF1", "NKF1"):
         r = rows[name]
