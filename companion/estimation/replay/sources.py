@@ -58,6 +58,11 @@ class ImuSeries:
     source: str
 
 
+def empty_imu(source: str) -> ImuSeries:
+    """No IMU samples: the runner then replays what it can (nothing estimated)."""
+    return ImuSeries(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), source)
+
+
 @dataclass
 class GpsSeries:
     """GPS solutions; NaN where the receiver did not say. `fix` is this project's code
@@ -236,21 +241,25 @@ def read_ulog(path: Path, *, salvage: bool = False) -> FlightLog:
     except Exception as exc:  # noqa: BLE001 - pyulog has no error type for damaged data
         raise LogReadError(path, f"PX4 ULog: pyulog cannot parse it ({type(exc).__name__}: "
                                  f"{exc})", bad_at) from None
-    notes: list[str] = []
     if ulog.file_corruption and damage is None:
         if not salvage:
             raise LogReadError(path, "PX4 ULog: damaged data (pyulog reports corruption)")
         damage = "damaged data (pyulog reports corruption; resynchronised)"
     sets = {(d.name, d.multi_id): d.data for d in ulog.data_list}
     sc = sets.get(("sensor_combined", 0))
+    notes: list[str] = []
     if sc is None:
-        raise LogReadError(path, "PX4 ULog: no sensor_combined messages (the IMU)")
-    t_us = np.asarray(sc["timestamp"], dtype=np.int64)
-    gyro = np.column_stack([np.asarray(_ulog_field(sc, f"gyro_rad[{i}]", f"gyro_rad_s[{i}]"),
-                                       dtype=float) for i in range(3)])
-    accel = np.column_stack([np.asarray(sc[f"accelerometer_m_s2[{i}]"], dtype=float)
-                             for i in range(3)])
-    imu = ImuSeries(t_us, gyro, accel, "sensor_combined")
+        # a partial replay (its GPS and references listed), not a refusal
+        notes.append("PX4 ULog: no sensor_combined messages (the IMU)")
+        imu = empty_imu("none")
+    else:
+        t_us = np.asarray(sc["timestamp"], dtype=np.int64)
+        gyro = np.column_stack([np.asarray(
+            _ulog_field(sc, f"gyro_rad[{i}]", f"gyro_rad_s[{i}]"), dtype=float)
+            for i in range(3)])
+        accel = np.column_stack([np.asarray(sc[f"accelerometer_m_s2[{i}]"], dtype=float)
+                                 for i in range(3)])
+        imu = ImuSeries(t_us, gyro, accel, "sensor_combined")
     instances = sorted(m for (name, m) in sets if name == "sensor_combined")
     if len(instances) > 1:
         notes.append(f"sensor_combined has instances {instances}: instance 0 used")
@@ -424,19 +433,24 @@ def read_dataflash(path: Path, *, salvage: bool = False,
         close_dfreader(reader)
     notes: list[str] = []
     imu_rows = rows["IMU"]
-    if not imu_rows:
-        raise LogReadError(path, "ArduPilot DataFlash: no IMU messages")
     instances = sorted({r[0] for r in imu_rows})
-    use = instances[0] if imu_instance is None else imu_instance
-    if use not in instances:
-        raise LogReadError(path, f"ArduPilot DataFlash: no IMU instance {use} "
-                                 f"(instances: {instances})")
-    if len(instances) > 1:
-        notes.append(f"IMU instances {instances} logged: instance {use} used")
-    a = np.array([r[1:] for r in imu_rows if r[0] == use], dtype=float)
-    imu = ImuSeries(a[:, 0].astype(np.int64), a[:, 1:4].copy(), a[:, 4:7].copy(),
-                    f"IMU[{use}]")
-    temperature = _temperature(a[:, 0], a[:, 7], f"IMU[{use}].T")
+    temperature = None
+    if not imu_rows:
+        # a partial replay (its GPS and references listed), not a refusal
+        notes.append("ArduPilot DataFlash: no IMU messages")
+        imu = empty_imu("none")
+    else:
+        use = instances[0] if imu_instance is None else imu_instance
+        if use not in instances:
+            raise LogReadError(path, f"ArduPilot DataFlash: no IMU instance {use} "
+                                     f"(instances: {instances})")
+        if len(instances) > 1:
+            notes.append(f"IMU instances {instances} logged: instance {use} used (the first: "
+                         "the autopilot's primary IMU unless its parameters chose another)")
+        a = np.array([r[1:] for r in imu_rows if r[0] == use], dtype=float)
+        imu = ImuSeries(a[:, 0].astype(np.int64), a[:, 1:4].copy(), a[:, 4:7].copy(),
+                        f"IMU[{use}]")
+        temperature = _temperature(a[:, 0], a[:, 7], f"IMU[{use}].T")
     gps = None
     if rows["GPS"]:
         g_inst, g_use, why = _best_gps_instance(rows["GPS"])
