@@ -25,8 +25,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                     "estimate.bin, summary.json and replay.png per log, into "
                     "<DIR>/<log stem>-replay/.")
     p.add_argument("logs", type=Path, nargs="+", metavar="LOG",
-                   help="PX4 .ulg or ArduPilot DataFlash .bin logs, or directories searched "
-                        "recursively for .bin/.BIN/.ulg/.tlog")
+                   help="PX4 .ulg, ArduPilot DataFlash .bin or MAVLink .tlog logs, or "
+                        "directories searched recursively for .bin/.BIN/.ulg/.tlog")
     p.add_argument("-o", "--output", type=Path, metavar="DIR", default=Path("."),
                    help="where each log's <stem>-replay/ goes (default: the current directory)")
     p.add_argument("--table", type=Path, metavar="CSV",
@@ -45,8 +45,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="ArduPilot IMU instance to use (default: the first logged)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="an estimator parameter (EST_GPS_LAG=0.1 or GPS_LAG=0.1); repeatable")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a log with a damaged or cut-short message (default: read what "
+                        "is whole, skip damage and report it with byte offsets)")
     p.add_argument("--salvage", action="store_true",
-                   help="replay what reads from a cut-short or damaged log instead of failing")
+                   help="accepted for older scripts: reading what is whole is the default")
     p.add_argument("--no-plot", action="store_true", help="do not draw replay.png")
     p.add_argument("--json", action="store_true", help="print each summary as JSON")
     p.set_defaults(func=cmd_replay)
@@ -126,11 +129,10 @@ def _replay_one(log: Path, out_dir: Path, options: Any, args: argparse.Namespace
     from companion.estimation.replay.sources import LogReadError, read_flight_log
 
     try:
-        flight = read_flight_log(log, salvage=args.salvage, imu_instance=args.imu_instance)
+        flight = read_flight_log(log, strict=args.strict, imu_instance=args.imu_instance)
     except LogReadError as exc:
-        hint = "" if args.salvage or exc.offset in (None, 0) else " (--salvage replays the rest)"
-        print(f"error: {exc}{hint}", file=sys.stderr)
-        return EXIT_BAD_LOG, None, f"{exc}{hint}"
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_LOG, None, str(exc)
     result = replay(flight, options)
     files: dict[str, str] = {}
     try:
@@ -159,7 +161,7 @@ def _replay_one(log: Path, out_dir: Path, options: Any, args: argparse.Namespace
         print(f"started at {result.start.started_at_s:.1f} s (first fix "
               f"{result.start.first_fix_s:.1f} s, heading from {result.start.heading_from})")
     if flight.damage:
-        print(f"warning: salvaged: {flight.damage}")
+        print(f"warning: damaged log: {flight.damage}")
     for note in result.notes:
         print(f"note: {note}")
     if result.comparisons:
