@@ -2,6 +2,7 @@
 
     python bench/replay_logs_bench.py                      # tests/data/replay, tests/data/px4-ulog
     python bench/replay_logs_bench.py DIR... [--limit N]   # any logs (directories searched)
+    python bench/replay_logs_bench.py --quick              # the first two logs
 
 For every log (the replay's `find_logs`: .bin/.BIN/.ulg/.tlog, recursively) four replays, all
 through `companion.estimation.replay.runner.replay`:
@@ -64,7 +65,10 @@ def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="*", type=Path, help="logs or directories")
     ap.add_argument("--limit", type=int, default=0, help="at most this many logs")
+    ap.add_argument("--quick", action="store_true", help="the first two logs only")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.limit = 2
     logging.disable(logging.WARNING)  # the ESKF's fault warnings: counted in the table
     logs = find_logs([p for p in (args.paths or DEFAULT_DIRS) if p.exists()])
     if args.limit:

@@ -149,11 +149,18 @@ def test_heading_from_the_logs_own_attitude(flight: SitlRecording, tmp_path: Pat
     # a receiver that reports no ground speed (a hover, for the filter): no course to align on
     rows.gps = [(t, (*v[:8], 0.0, 0.0, *v[10:])) for t, v in rows.gps]
     path = write_dataflash(tmp_path / "hover.bin", rows)
-    own = replay(read_flight_log(path))
+    own = replay(read_flight_log(path), ReplayOptions(heading_from="gps"))
     assert own.estimator == "eskf" and not own.estimate.aligned.any()
     assert own.start.heading_from == "gps"
     res = replay(read_flight_log(path), ReplayOptions(heading_from="ref"))
     assert res.start.heading_from == "ATT" and res.estimate.aligned.all()
+    # the default: the log's attitude, since the first fix is too slow for a course...
+    auto = replay(read_flight_log(path))
+    assert auto.start.heading_from == "ATT" and auto.estimate.aligned.all()
+    assert any("heading started from ATT's yaw" in n for n in auto.notes)
+    # ...but the GPS course, as in flight, when the vehicle already flies at the first fix
+    flying = replay(read_flight_log(write_dataflash(tmp_path / "fly.bin", flight_rows(flight))))
+    assert flying.start.heading_from == "gps" and flying.start.heading_start_deg is None
     k = int(round(res.start.started_at_s * 100))  # type: ignore[operator]
     true_yaw = math.degrees(flight.euler_true_rad[min(k, flight.ticks - 1), 2])
     assert res.start.heading_start_deg is not None

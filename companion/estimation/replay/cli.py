@@ -36,9 +36,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                    help="auto: the ESKF when the log has GPS fixes and it starts, else IMU-only")
     p.add_argument("--imu-filter", default=None, metavar="NAME",
                    help="the IMU-only filter (default vqf; ours, ours_timed, madgwick)")
-    p.add_argument("--heading-from", default="gps", metavar="REF",
-                   help="start the ESKF's heading from the GPS course (gps, the default, as "
-                        "in flight) or from a reference of the log (ref: the first; ATT, ...)")
+    p.add_argument("--heading-from", default="auto", metavar="REF",
+                   help="where the ESKF's heading starts: auto (default: the GPS course if the "
+                        "vehicle is already moving at the first fix, else the log's first "
+                        "attitude), gps (the GPS course, as in flight) or a reference "
+                        "(ref: the first; ATT, NKF1, vehicle_attitude...)")
     p.add_argument("--skip-s", type=float, default=2.0, metavar="S",
                    help="seconds after our estimator starts that are not scored (default 2)")
     p.add_argument("--imu-instance", type=int, metavar="N",
