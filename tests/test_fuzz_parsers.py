@@ -620,7 +620,7 @@ def check_log_read(raw: bytes) -> None:
     start = time.monotonic()
     strict = None
     try:
-        strict = read_log_bytes(raw)
+        strict = read_log_bytes(raw, strict=True)
     except LogFormatError as exc:
         assert 0 <= exc.offset <= len(raw)
         assert f"byte offset {exc.offset}:" in str(exc), str(exc)

@@ -172,7 +172,10 @@ def test_info_bad_inputs_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixt
     offs = _scan(bytes(buf), 0, len(buf), fast=False)[0]
     buf[int(offs[40])] = 0x77
     (d / "gps.bin").write_bytes(bytes(buf))
-    assert cli.main(["info", str(d)]) == 1
+    assert cli.main(["info", str(d)]) == 0  # the default: the damage is skipped and reported
+    captured = capsys.readouterr()
+    assert f"byte offset {int(offs[40])}" in captured.err and "gps.bin" in captured.out
+    assert cli.main(["info", str(d), "--strict"]) == 1
     captured = capsys.readouterr()
     lines = [line for line in captured.err.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and str(d / "gps.bin") in lines[0]

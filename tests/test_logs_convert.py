@@ -246,22 +246,23 @@ def test_cli_convert_default_dir_is_next_to_input(tmp_path: Path) -> None:
     assert data_lines(tmp_path / "x_fmt3.csv") == data_lines(VECTORS / "log-example_fmt3.csv")
 
 
-def test_cli_damaged_file_fails_unless_salvage(
+def test_cli_damaged_file_is_read_and_strict_fails(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = _damaged(tmp_path)
-    assert cli.main(["convert", str(path), "-o", str(tmp_path / "o")]) == 1
+    assert cli.main(["convert", str(path), "-o", str(tmp_path / "s"), "--strict"]) == 1
     err = capsys.readouterr().err
     assert (
         "byte offset" in err
         and "damaged.bin" in err
-        and "--salvage" in err
+        and "--strict" in err
         and "Traceback" not in err
     )
-    assert cli.main(["convert", str(path), "-o", str(tmp_path / "o"), "--salvage"]) == 0
-    err = capsys.readouterr().err
-    assert "skipped" in err
-    assert len(data_lines(tmp_path / "o" / "damaged_fmt2.csv")) == 16
+    for extra in ([], ["--salvage"]):  # the default; --salvage is accepted and the same
+        assert cli.main(["convert", str(path), "-o", str(tmp_path / "o"), *extra]) == 0
+        err = capsys.readouterr().err
+        assert "skipped" in err and "byte offset" in err
+        assert len(data_lines(tmp_path / "o" / "damaged_fmt2.csv")) == 16
 
 
 def test_cli_missing_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -293,7 +294,7 @@ def test_cli_info(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert info["start"] == "1700000000.000000000" and info["end"] == "1700000000.633900131"
     assert info["damage"] == [] and info["closed_cleanly"] is True
     path = _damaged(tmp_path)
-    assert cli.main(["info", str(path), "--salvage", "--json"]) == 0
+    assert cli.main(["info", str(path), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["damage"][0]["kind"] == "unknown_type"
 
@@ -320,8 +321,8 @@ def test_add_commands_registers_the_log_actions() -> None:
     cli.add_commands(logs.add_subparsers(required=True))
     args = parser.parse_args(["logs", "info", "x.bin", "--json"])
     assert args.func is cli.cmd_info and args.json
-    args = parser.parse_args(["logs", "convert", "a.bin", "b", "-o", "out", "--salvage"])
-    assert args.func is cli.cmd_convert and args.paths == ["a.bin", "b"] and args.salvage
+    args = parser.parse_args(["logs", "convert", "a.bin", "b", "-o", "out", "--strict"])
+    assert args.func is cli.cmd_convert and args.paths == ["a.bin", "b"] and args.strict
     args = parser.parse_args(["logs", "export", "a.bin", "--to", "npz"])
     assert args.func is cli.cmd_export and args.to == "npz"
     with pytest.raises(SystemExit):

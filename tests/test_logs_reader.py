@@ -313,7 +313,7 @@ def test_corruption_stops_with_the_byte_offset(
     path = tmp_path / "damaged.bin"
     path.write_bytes(raw)
     with pytest.raises(LogFormatError) as err:
-        read_log(path)
+        read_log(path, strict=True)
     assert err.value.offset == offset
     assert err.value.kind == kind
     assert str(path) in str(err.value) and f"byte offset {offset}" in str(err.value)
@@ -327,6 +327,8 @@ def test_salvage_skips_to_the_next_plausible_record(
 ) -> None:
     lf = read_log_bytes(raw, salvage=True)
     assert [(d.offset, d.kind, d.skipped_bytes) for d in lf.damage] == [(offset, kind, skipped)]
+    by_default = read_log_bytes(raw)  # skipping damage is the default, `salvage` a no-op alias
+    assert [(d.offset, d.skipped_bytes) for d in by_default.damage] == [(offset, skipped)]
     assert lf.skipped_bytes == skipped and lf.skipped_records == 1
     if name in ("unknown type", "undefined index", "length mismatch"):
         good = read_log_bytes(sample_log()[0].bytes())
@@ -389,7 +391,8 @@ def test_empty_and_tiny_inputs() -> None:
     assert lf.streams == [] and not lf.closed_cleanly
     assert read_log_bytes(b"\xbd").truncated_bytes == 1
     with pytest.raises(LogFormatError):
-        read_log_bytes(b"\x01")
+        read_log_bytes(b"\x01", strict=True)
+    assert read_log_bytes(b"\x01").damage  # the default: skipped and reported
 
 
 # -- fuzzing ------------------------------------------------------------------------------------
@@ -400,7 +403,7 @@ _BUDGET_S = 5.0
 def _read_safely(raw: bytes) -> None:
     start = time.monotonic()
     try:
-        read_log_bytes(raw)
+        read_log_bytes(raw, strict=True)
     except LogFormatError as exc:
         assert 0 <= exc.offset <= len(raw)
     lf = read_log_bytes(raw, salvage=True)  # salvage never raises

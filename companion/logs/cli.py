@@ -1,7 +1,9 @@
 """``companion logs ...``: convert binary logs to CSV, describe them, export them.
 
 Registered by the main CLI through `add_commands`; every handler returns the exit code:
-0 success, 1 a file could not be read or is damaged (unless ``--salvage``), 2 usage errors.
+0 success, 1 a file could not be read (or is damaged, with ``--strict``), 2 usage errors. Damage
+is skipped and reported with its byte offsets by default; ``--salvage`` is accepted for older
+scripts and changes nothing.
 
 Every command also takes a flight archive (what a ground station downloads from the vehicle's
 log list, saved as ``.bin``, ``.ulg`` or anything: see `companion.logs.archive`) where it takes
@@ -36,14 +38,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     c.add_argument(
         "-o", "--out-dir", type=Path, help="output directory (default: next to each input)"
     )
-    c.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
+    _damage_flags(c)
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("info", help="formats, record counts, time span, markers, damage")
     i.add_argument("path", type=Path, metavar="FILE_OR_DIR",
                    help="a log file, a flight directory (every *.bin log in it, and a total) "
                    "or a flight archive (every log in it)")
-    i.add_argument("--salvage", action="store_true", help="read past damage and report it")
+    _damage_flags(i)
     i.add_argument("--json", action="store_true", help="machine-readable output")
     i.set_defaults(func=cmd_info)
 
@@ -63,7 +65,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
         help="npz: output file (a directory for an archive); parquet: output directory "
         "(default: next to FILE, in the unpacked flight for an archive)",
     )
-    e.add_argument("--salvage", action="store_true", help="skip damaged regions instead of failing")
+    _damage_flags(e)
     e.set_defaults(func=cmd_export)
 
     q = sub.add_parser("query", help="SQL (DuckDB) over a dataset written by export --dataset")
@@ -114,14 +116,22 @@ def _log_inputs(paths: list[Path]) -> tuple[list[Path], bool]:
     return out, ok
 
 
-def _read(path: Path, salvage: bool) -> LogFile | None:
+def _damage_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--strict", action="store_true",
+                   help="fail on a damaged file (default: skip damaged regions and report them)")
+    p.add_argument("--salvage", action="store_true",
+                   help="accepted for older scripts: skipping damage is the default")
+
+
+def _read(path: Path, strict: bool) -> LogFile | None:
     from companion.logs.reader import read_log
     from companion.logs.streams import LogFormatError
 
     try:
-        lf = read_log(path, salvage=salvage)
+        lf = read_log(path, strict=strict)
     except LogFormatError as exc:
-        print(f"error: {exc} (use --salvage to skip damaged regions)", file=sys.stderr)
+        print(f"error: {exc} (without --strict the damaged regions are skipped)",
+              file=sys.stderr)
         return None
     except OSError as exc:
         print(f"error: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
@@ -174,7 +184,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
         return 1
     status = 0 if ok else 1
     for path in files:
-        lf = _read(path, args.salvage)
+        lf = _read(path, args.strict)
         if lf is None:
             status = 1
             continue
@@ -261,19 +271,19 @@ def cmd_info(args: argparse.Namespace) -> int:
         if not files:
             print(f"error: {path}: no .bin/.uavlog log in this directory", file=sys.stderr)
             return 1
-        return _info_many(files, args.salvage, args.json, total=True)
+        return _info_many(files, args.strict, args.json, total=True)
     if not is_archive(path):
-        return _info_one(path, args.salvage, args.json, None)
+        return _info_one(path, args.strict, args.json, None)
     files, ok = _log_inputs([path])
     if not ok:
         return 1
     if not files:
         print(f"error: {path}: the flight holds no .bin/.uavlog file", file=sys.stderr)
         return 1
-    return _info_many(files, args.salvage, args.json, total=False)
+    return _info_many(files, args.strict, args.json, total=False)
 
 
-def _info_many(files: list[Path], salvage: bool, as_json: bool, *, total: bool) -> int:
+def _info_many(files: list[Path], strict: bool, as_json: bool, *, total: bool) -> int:
     """One block per log (a JSON list with --json); with `total`, a last line adding them up.
     A log that cannot be read is its error line, and the exit status is 1."""
     infos: list[dict[str, Any]] = []
@@ -281,7 +291,7 @@ def _info_many(files: list[Path], salvage: bool, as_json: bool, *, total: bool) 
     for k, path in enumerate(files):
         if k and not as_json:
             print()
-        status |= _info_one(path, salvage, as_json, infos)
+        status |= _info_one(path, strict, as_json, infos)
     if as_json:
         print(json.dumps(infos, indent=2))  # one list: one JSON document
     elif total:
@@ -293,10 +303,10 @@ def _info_many(files: list[Path], salvage: bool, as_json: bool, *, total: bool) 
     return status
 
 
-def _info_one(path: Path, salvage: bool, as_json: bool,
+def _info_one(path: Path, strict: bool, as_json: bool,
               collect: list[dict[str, Any]] | None) -> int:
     """Describe one log; with `collect`, append the JSON dict to it instead of printing."""
-    lf = _read(path, salvage)
+    lf = _read(path, strict)
     if lf is None:
         return 1
     info = _info_dict(lf)
@@ -350,7 +360,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         return 2
     path: Path = args.path[0]
     if not is_archive(path):
-        return _export_one(path, args.to, args.out, args.salvage)
+        return _export_one(path, args.to, args.out, args.strict)
     files, ok = _log_inputs([path])
     if not ok:
         return 1
@@ -368,16 +378,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     status = 0
     for path in files:
         out = npz_dir / f"{path.stem}.npz" if npz_dir is not None else args.out
-        status |= _export_one(path, args.to, out, args.salvage)
+        status |= _export_one(path, args.to, out, args.strict)
     return status
 
 
-def _export_one(path: Path, to: str, out_arg: Path | None, salvage: bool) -> int:
+def _export_one(path: Path, to: str, out_arg: Path | None, strict: bool) -> int:
     import numpy as np
 
     from companion.logs.convert import csv_name
 
-    lf = _read(path, salvage)
+    lf = _read(path, strict)
     if lf is None:
         return 1
     stem = path.stem

@@ -180,17 +180,19 @@ def convert_file(
     path: str | os.PathLike[str],
     out_dir: str | os.PathLike[str] | None = None,
     *,
-    salvage: bool = False,
+    salvage: bool | None = None,
     progress: Progress | None = None,
     log_file: LogFile | None = None,
+    strict: bool = False,
 ) -> list[Path]:
     """Convert one binary log; returns the CSV files written (``<stem>_fmt<index>.csv``).
 
-    Raises LogFormatError on a damaged file unless `salvage`. `progress(done, total)` is
-    called with record counts as batches are written.
+    Damage is skipped as `read_log` does; `strict` (or `salvage=False`) raises LogFormatError
+    on a damaged file instead. `progress(done, total)` is called with record counts as batches
+    are written.
     """
     src = Path(path)
-    lf = log_file if log_file is not None else read_log(src, salvage=salvage)
+    lf = log_file if log_file is not None else read_log(src, salvage=salvage, strict=strict)
     dest = Path(out_dir) if out_dir is not None else src.parent
     dest.mkdir(parents=True, exist_ok=True)
     total = sum(s.n_records for s in lf.streams)

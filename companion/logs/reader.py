@@ -15,9 +15,9 @@ its stream (`companion.logs.versions`). Every pass over all records costs about 
 passes are few.
 
 How it stays safe: every loop advances through the file, every allocation is proportional to
-the file size, and anything the contract calls corruption raises `LogFormatError` with the byte
-offset, or, with ``salvage=True``, is skipped up to the next offset where a plausible record
-starts and recorded in `LogFile.damage`.
+the file size, and anything the contract calls corruption is skipped up to the next offset
+where a plausible record starts and recorded in `LogFile.damage` (the default), or, with
+``strict=True``, raises `LogFormatError` with the byte offset.
 """
 
 from __future__ import annotations
@@ -452,16 +452,27 @@ def _between(ctrl: np.ndarray, end: int) -> tuple[int, int] | None:
     return lead, end - rest
 
 
-def read_log_bytes(data: bytes, *, name: str = "<bytes>", salvage: bool = False) -> LogFile:
-    """Read a binary log held in memory; `name` is used in messages."""
-    return _Parser(bytes(data), name, salvage).run()
+def _skips_damage(salvage: bool | None, strict: bool) -> bool:
+    """Reading what is whole is the default (damage skipped and listed in `LogFile.damage`);
+    `strict=True` refuses damage, and an explicit `salvage` from older callers still decides."""
+    return (not strict) if salvage is None else salvage
 
 
-def read_log(path: str | os.PathLike[str], *, salvage: bool = False) -> LogFile:
-    """Read a binary log file.
+def read_log_bytes(data: bytes, *, name: str = "<bytes>", salvage: bool | None = None,
+                   strict: bool = False) -> LogFile:
+    """Read a binary log held in memory; `name` is used in messages. Damage is skipped and
+    reported unless `strict` (see `read_log`)."""
+    return _Parser(bytes(data), name, _skips_damage(salvage, strict)).run()
 
-    Raises LogFormatError (with the file name and byte offset) on corruption unless `salvage`;
-    a cut-short last record is dropped with a warning either way.
+
+def read_log(path: str | os.PathLike[str], *, salvage: bool | None = None,
+             strict: bool = False) -> LogFile:
+    """Read a binary log file: what is whole is read, damage in the middle is skipped up to the
+    next plausible record and listed in `LogFile.damage` with its byte offset, and a cut-short
+    last record is dropped with a warning (how a log ends when the power goes).
+
+    `strict=True` raises LogFormatError (with the file name and byte offset) on any damage
+    instead; `salvage=False` means the same, `salvage=True` the default, for older callers.
     """
     p = Path(path)
-    return read_log_bytes(p.read_bytes(), name=str(p), salvage=salvage)
+    return read_log_bytes(p.read_bytes(), name=str(p), salvage=_skips_damage(salvage, strict))

@@ -184,7 +184,7 @@ def _read_one(name: str, path: Path) -> LogStatus:
         st.problems.append(f"cannot read: {exc.strerror or exc}")
         return st
     try:
-        st.log = read_log_bytes(raw, name=str(path))
+        st.log = read_log_bytes(raw, name=str(path), strict=True)  # damage: try restoring first
     except LogFormatError as exc:
         st.log = _restored(st, raw, exc) or read_log_bytes(raw, name=str(path), salvage=True)
     lf = st.log
@@ -208,7 +208,7 @@ def _restored(st: LogStatus, raw: bytes, exc: LogFormatError) -> LogFile | None:
     if header is None:
         return None
     try:
-        lf = read_log_bytes(header + raw, name=str(st.path))
+        lf = read_log_bytes(header + raw, name=str(st.path), strict=True)
     except LogFormatError:
         lf = read_log_bytes(header + raw, name=str(st.path), salvage=True)
     if not any(s.n_records for s in lf.streams):

@@ -62,3 +62,40 @@ def dataflash_head(data: bytes, seconds: float) -> bytes:
                 return data[:off]
         off += ln
     return data[:off]
+
+
+def repeat_dataflash(data: bytes, copies: int, period_us: int) -> bytes:
+    """A long DataFlash log from a short real one: its records repeated `copies` times, each
+    copy's TimeUS shifted by `period_us` more than the last (FMT records only in the first copy),
+    so the result reads as one flight of `copies` x `period_us`. Only whole records are used
+    (a cut-short last one is dropped); types without a leading TimeUS are copied unchanged."""
+    from companion.estimation.replay.dfwalk import parse_fmt
+
+    lengths = {0x80: 89}
+    timed: set[int] = set()
+    records: list[tuple[int, bytes]] = []
+    off = 0
+    while off + 3 <= len(data) and data[off:off + 2] == b"\xa3\x95":
+        typ = data[off + 2]
+        ln = lengths.get(typ)
+        if ln is None or off + ln > len(data):
+            break
+        rec = data[off:off + ln]
+        if typ == 0x80:
+            f = parse_fmt(rec[3:])
+            lengths[f.type_id] = f.length
+            if f.letters[:1] == "Q" and f.columns[:1] == ("TimeUS",):
+                timed.add(f.type_id)
+        records.append((typ, rec))
+        off += ln
+    out = bytearray(b"".join(rec for _, rec in records))
+    body = [(typ, rec) for typ, rec in records if typ != 0x80]
+    for k in range(1, copies):
+        shift = k * period_us
+        for typ, rec in body:
+            if typ in timed:
+                t = struct.unpack_from("<Q", rec, 3)[0] + shift
+                out += rec[:3] + struct.pack("<Q", t) + rec[11:]
+            else:
+                out += rec
+    return bytes(out)

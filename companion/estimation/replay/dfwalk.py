@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 HEAD = b"\xa3\x95"
 FMT_TYPE = 0x80
 FMT_LEN = 89
-CHUNK_BYTES = 4 << 20
+CHUNK_BYTES = 1 << 20
 MAX_REGIONS = 1000  # regions kept in detail; the rest are only counted
 
 LETTERS: dict[str, str] = {
@@ -113,7 +113,7 @@ class DfWalk:
         out = []
         for fmt, raw in self.bodies:
             if fmt.name == name and fmt.dtype is not None and raw:
-                out.append((fmt, np.frombuffer(bytes(raw), dtype=fmt.dtype)))
+                out.append((fmt, np.frombuffer(raw, dtype=fmt.dtype)))
         return out
 
 
@@ -126,8 +126,12 @@ class _Walker:
         self.counts = [0] * 256
         self.result = DfWalk()
         self.bad_start: int | None = None  # absolute offset where unreadable bytes began
+        self.fmt_bodies: dict[int, bytes] = {}
 
     def _fmt(self, body: bytes) -> None:
+        if self.fmt_bodies.get(body[0]) == body:
+            return  # repeated word for word (a log concatenated with another, or a restart)
+        self.fmt_bodies[body[0]] = body
         f = parse_fmt(body)
         if f.type_id == FMT_TYPE:
             return  # the FMT of FMT itself: its length is fixed

@@ -15,6 +15,7 @@ between the IMU messages' reception and boot times.
 from __future__ import annotations
 
 import logging
+import re
 from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,10 @@ KIND = "mavlink-tlog"
 FORMAT = "MAVLink telemetry log"
 CHUNK_BYTES = 1 << 20
 STAMP = 8
+STAMP_WINDOW_US = 86_400 * 10**6
+"""When resynchronising, a frame whose reception time is more than a day from the last good
+one's is noise that happens to look like a frame."""
+MAGIC = re.compile(b"[\xfe\xfd]")
 G_M_S2 = 9.80665
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
@@ -105,6 +110,8 @@ class _TlogWalk:
         from pymavlink.dialects.v20 import ardupilotmega as dialect
 
         self.mav = dialect.MAVLink(None)
+        self.unknown_type = dialect.MAVLink_unknown
+        self.last_stamp = -1
         self.mav.robust_parsing = True
         self.series: dict[tuple[int, str], _Series] = {}
         self.skipped: list[SkippedRegion] = []
@@ -135,6 +142,9 @@ class _TlogWalk:
         size = self.frame_size(buf, p)
         if size is None:
             return False
+        if size and self.last_stamp >= 0 and abs(
+                int.from_bytes(buf[p:p + STAMP], "big") - self.last_stamp) > STAMP_WINDOW_US:
+            return False
         if size == 0:
             return None if not final else False
         q = p + size
@@ -144,14 +154,17 @@ class _TlogWalk:
         return nxt is not None and self._crc_ok(buf[p + STAMP:q])
 
     def _crc_ok(self, frame: bytes) -> bool:
+        """A frame of a message the dialect knows, whose CRC checks (pymavlink skips the check
+        for unknown ids, so those never count as found again)."""
         try:
-            self.mav.decode(bytearray(frame))
+            m = self.mav.decode(bytearray(frame))
         except Exception:  # noqa: BLE001 - pymavlink raises bare errors for bad frames
             return False
-        return True
+        return not isinstance(m, self.unknown_type)
 
     def _take(self, buf: bytes, off: int, size: int, base: int) -> None:
         stamp = int.from_bytes(buf[off:off + STAMP], "big")
+        self.last_stamp = stamp
         frame = buf[off + STAMP:off + size]
         v2 = frame[0] == 0xFD
         msg_id = (frame[7] | frame[8] << 8 | frame[9] << 16) if v2 else frame[5]
@@ -179,15 +192,17 @@ class _TlogWalk:
         off = 0
         while True:
             if self.bad_start is not None:
-                while off < n:
+                while True:
+                    m = MAGIC.search(buf, off + STAMP)
+                    if m is None:
+                        return max(off, n - STAMP - 1)
+                    off = m.start() - STAMP
                     ok = self._plausible(buf, off, final)
                     if ok is None:
                         return off
                     if ok:
                         break
                     off += 1
-                else:
-                    return off
                 self.skipped.append(SkippedRegion(
                     self.bad_start, base + off - self.bad_start,
                     "unreadable bytes (no MAVLink frame where the previous one ended)"))

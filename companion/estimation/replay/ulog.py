@@ -13,6 +13,8 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import re
+import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -41,7 +43,14 @@ FORMAT = "PX4 ULog"
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 ULOG_HEADER_SIZE = 16
 ULOG_TYPES = frozenset(b"BFIMPQARDLCSO")
-CHUNK_BYTES = 4 << 20
+CHUNK_BYTES = 1 << 20
+RESYNC_CHAIN = 8
+FIXED_SIZES = {ord("S"): 8, ord("O"): 2, ord("R"): 2}  # sync magic, dropout ms, msg id
+MAX_RESYNC_SIZE = 8192
+"""No uORB topic, subscription or log string comes near this; a size read from noise does. A
+longer message (a big info message) is still read in the chain, only not resynchronised on."""
+CANDIDATE = re.compile(b"..[" + bytes(sorted(ULOG_TYPES)) + b"]", re.DOTALL)
+"""Where a message may start: its type byte is one of ULog's (searched in C, not byte by byte)."""
 REFERENCES = ("vehicle_attitude", "vehicle_attitude_groundtruth")
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 
@@ -55,15 +64,18 @@ class _ChainWalk:
 
     @staticmethod
     def _plausible(buf: bytes, p: int, final: bool) -> bool | None:
+        """Do RESYNC_CHAIN messages in a row start at `p` (or run to the end of the file)?
+        ULog's type bytes are common letters, so one or two in a row happen in noise."""
         n = len(buf)
-        if p + 3 > n:
-            return None if not final else False
-        if buf[p + 2] not in ULOG_TYPES:
-            return False
-        q = p + 3 + (buf[p] | buf[p + 1] << 8)
-        if q + 3 > n:
-            return (q <= n) if final else None
-        return buf[q + 2] in ULOG_TYPES
+        for _ in range(RESYNC_CHAIN):
+            if p + 3 > n:
+                return (p == n) if final else None
+            typ, size = buf[p + 2], buf[p] | buf[p + 1] << 8
+            if typ not in ULOG_TYPES or FIXED_SIZES.get(typ, size) != size or (
+                    size > MAX_RESYNC_SIZE):
+                return False
+            p += 3 + size
+        return True
 
     def walk(self, buf: bytes, base: int, final: bool) -> int:
         n = len(buf)
@@ -71,15 +83,17 @@ class _ChainWalk:
         types = ULOG_TYPES
         while True:
             if self.bad_start is not None:
-                while off < n:
+                while True:
+                    m = CANDIDATE.search(buf, off)
+                    if m is None:
+                        return max(off, n - 2)
+                    off = m.start()
                     ok = self._plausible(buf, off, final)
                     if ok is None:
                         return off
                     if ok:
                         break
                     off += 1
-                else:
-                    return off
                 self.skipped.append(SkippedRegion(self.bad_start, base + off - self.bad_start,
                                                   "unreadable bytes (no ULog message where the "
                                                   "previous one ended)"))
@@ -163,15 +177,40 @@ def _px4_gps(g: dict[str, Any], name: str) -> GpsSeries:
         course_deg=np.degrees(arr("cog_rad")), source=name)
 
 
-def _parse(path: Path) -> Any:
+def _spliced(path: Path, skipped: list[SkippedRegion]) -> BinaryIO:
+    """The file without its damaged regions, in a temporary file: pyulog's own resynchronising
+    loses whole seconds after a damaged message, so it is handed only whole messages. On disk,
+    not in memory, since a log can be bigger than the memory a replay should take."""
+    out = tempfile.TemporaryFile()
+    with path.open("rb") as fh:
+        pos = 0
+        for s in [*skipped, SkippedRegion(path.stat().st_size, 0, "end")]:
+            fh.seek(pos)
+            left = s.offset - pos
+            while left > 0:
+                block = fh.read(min(left, CHUNK_BYTES))
+                if not block:
+                    break
+                out.write(block)
+                left -= len(block)
+            pos = s.offset + s.length
+    out.seek(0)
+    return out
+
+
+def _parse(path: Path, skipped: list[SkippedRegion]) -> Any:
     from pyulog import ULog
     from pyulog.core import ULogException
 
     wanted = ["sensor_combined", *GPS_TOPICS, *REFERENCES, "vehicle_imu_status", "sensor_gyro"]
     quiet = io.StringIO()
+    inner = [s for s in skipped if not s.tail]
     try:
         with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
-            return ULog(str(path), message_name_filter_list=wanted)
+            if not inner:
+                return ULog(str(path), message_name_filter_list=wanted)
+            with _spliced(path, inner) as fh:
+                return ULog(fh, message_name_filter_list=wanted)
     except ULogException as exc:
         raise LogReadError(path, f"{FORMAT}: {exc}") from None
     except Exception as exc:  # noqa: BLE001 - pyulog has no error type for damaged data
@@ -188,10 +227,10 @@ def read_ulog(path: Path, *, strict: bool = False) -> FlightLog:
     if skipped and skipped[0].offset == 0:
         raise LogReadError(path, f"{FORMAT}: {skipped[0].what}", 0)
     refuse_if_strict(path, FORMAT, skipped, strict)
-    ulog = _parse(path)
+    ulog = _parse(path, skipped)
     notes = region_notes(skipped)
     damage = damage_line(skipped)
-    if ulog.file_corruption:
+    if ulog.file_corruption and not damage:
         if strict:
             raise LogReadError(path, f"{FORMAT}: damaged data (pyulog reports corruption)")
         if damage is None:
