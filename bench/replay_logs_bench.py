@@ -8,9 +8,10 @@ For every log (the replay's `find_logs`: .bin/.BIN/.ulg/.tlog, recursively) four
 through `companion.estimation.replay.runner.replay`:
 
 * ``auto``: what the command runs by default (the GPS/INS filter when the log has a fix inside
-  its IMU span and it starts, heading from the GPS course; else IMU-only VQF);
-* ``eskf ref``: the same with the starting heading from the log's own attitude
-  (``--heading-from ref``), only where the ESKF ran;
+  its IMU span and it starts, its heading from the log's attitude unless the vehicle already
+  moves at the first fix; else IMU-only VQF);
+* ``eskf gps``: the same with the flight's heading rule (``--heading-from gps``: the GPS
+  course only), only where the ESKF ran;
 * ``vqf`` and ``ours``: the IMU-only filters of the registry (``--estimator attitude``).
 
 The figure is the inclination difference (RMSE, degrees) from each reference the log has
@@ -42,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DIRS = (REPO / "tests" / "data" / "replay", REPO / "tests" / "data" / "px4-ulog")
 CONFIGS = {
     "auto": ReplayOptions(),
-    "eskf ref": ReplayOptions(estimator="eskf", heading_from="ref"),
+    "eskf gps": ReplayOptions(estimator="eskf", heading_from="gps"),
     "vqf": ReplayOptions(estimator="attitude", imu_filter="vqf"),
     "ours": ReplayOptions(estimator="attitude", imu_filter="ours"),
 }
@@ -83,7 +84,7 @@ def main(argv: list[str]) -> int:
             continue
         row: dict[str, Any] = {"log": path, "flight": flight, "res": {}}
         for name, opts in CONFIGS.items():
-            if name == "eskf ref" and row["res"]["auto"].estimator != "eskf":
+            if name == "eskf gps" and row["res"]["auto"].estimator != "eskf":
                 continue
             if not len(flight.imu.t_us):
                 continue
@@ -91,7 +92,7 @@ def main(argv: list[str]) -> int:
         rows.append(row)
     print(f"## Inclination difference from each log's references, RMSE in degrees "
           f"({len(logs)} logs, {time.monotonic() - t0:.0f} s)\n")
-    print("| log | kind | s | IMU Hz | ran (auto) | start s | reference | auto | eskf ref "
+    print("| log | kind | s | IMU Hz | ran (auto) | start s | reference | auto | eskf gps "
           "| vqf | ours |")
     print("| --- | --- | ---: | ---: | --- | ---: | --- | ---: | ---: | ---: | ---: |")
     per_config: dict[str, list[float]] = {k: [] for k in CONFIGS}
@@ -128,7 +129,8 @@ def main(argv: list[str]) -> int:
     print("\n## Summary over logs (first reference of each log)\n")
     print("| replay | logs | median RMSE | mean RMSE |")
     print("| --- | ---: | ---: | ---: |")
-    labels = {"auto": "ESKF (where it ran)", "eskf ref": "ESKF, heading from the log",
+    labels = {"auto": "ESKF, default heading (where it ran)",
+              "eskf gps": "ESKF, heading from the GPS course only",
               "vqf": "IMU-only VQF", "ours": "IMU-only ours"}
     for k, vals in per_config.items():
         if vals:
