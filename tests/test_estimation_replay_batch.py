@@ -68,6 +68,9 @@ def test_replay_runs_the_filter_asked_for() -> None:
            for r in (default, ours)}
     assert inc["vqf"] < 0.5 and inc["ours_timed"] < 0.5, inc
     assert inc["vqf"] != inc["ours_timed"]
+    # the time alignment is stated: nearest sample, within its tolerance
+    m = default.comparisons[0].metrics
+    assert 0.0 <= m["median_time_offset_ms"] <= m["match_tolerance_ms"]
     with pytest.raises(ValueError, match="unknown IMU-only filter 'kalman'"):
         replay(fl, ReplayOptions(imu_filter="kalman"))
 

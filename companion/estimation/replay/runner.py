@@ -259,7 +259,12 @@ def compare(est: Estimate, ref: AttitudeSeries, ref_t_us: IntArray, keep: IntArr
             "roll_deg": _stats(err[:, 0]), "pitch_deg": _stats(err[:, 1]),
             "yaw_deg": _stats(err[:, 2]), "inclination_deg": _stats(err[:, 3]),
             "yaw_offset_removed_deg": None if not math.isfinite(offset)
-            else round(math.degrees(offset), 3)}
+            else round(math.degrees(offset), 3),
+            # the time alignment: nearest reference sample, no shift (docs/estimation.md)
+            "match_tolerance_ms": round(tol / 1e3, 1),
+            "median_time_offset_ms": round(float(np.median(
+                np.abs(ref_t_us[nearer] - est.t_us)[scored])) / 1e3, 1)
+            if scored.any() else None}
     return Comparison(ref.name, est.t_us, err, metrics, ref_at)
 
 
