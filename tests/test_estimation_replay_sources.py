@@ -333,6 +333,45 @@ def test_an_imu_logged_at_a_lower_rate_is_passed_over(tmp_path: Path) -> None:
     assert read_flight_log(path, imu_instance=0).imu.source == "IMU[0]"
 
 
+def px4_tlog(seconds: float = 5.0) -> bytes:
+    """A PX4-style telemetry log: HIGHRES_IMU (SI units) at 50 Hz, RAW_IMU in raw counts,
+    GPS_RAW_INT dated in UNIX time (as some senders do), ATTITUDE; received 30 ms late."""
+    from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+    mav = dialect.MAVLink(None, srcSystem=1, srcComponent=1)
+    unix0_us, boot0_us = 1_700_000_000_000_000, 12_000_000
+    out = []
+    for k in range(int(seconds * 50)):
+        boot = boot0_us + 20_000 * k
+        stamp = struct.pack(">Q", unix0_us + boot + 30_000)
+        msgs = [mav.highres_imu_encode(boot, 0.0, 0.0, -9.81, 0.02, 0.0, 0.0, 0, 0, 0, 0, 0, 0,
+                                       35.5, 0),
+                mav.raw_imu_encode(boot, 10, 20, 4000, 1, 2, 3, 0, 0, 0)]
+        if k % 50 == 0:
+            msgs.append(mav.heartbeat_encode(2, 12, 0, 0, 4))
+        if k % 10 == 0:
+            msgs.append(mav.gps_raw_int_encode(unix0_us + boot, 3, 473977420, 85455940, 488120,
+                                               80, 120, 150, 9000, 12))
+            msgs.append(mav.attitude_encode(boot // 1000, 0.1, -0.05, 1.0, 0, 0, 0))
+        out += [stamp + m.pack(mav) for m in msgs]
+    return b"".join(out)
+
+
+def test_a_px4_tlog_uses_highres_imu_and_dates_unix_gps_by_reception(tmp_path: Path) -> None:
+    path = tmp_path / "px4.tlog"
+    path.write_bytes(px4_tlog())
+    fl = read_flight_log(path)
+    assert fl.kind == "mavlink-tlog" and fl.imu.source == "HIGHRES_IMU[sys 1]"
+    assert fl.imu.accel_m_s2[0, 2] == pytest.approx(-9.81) and fl.imu.gyro_rad_s[0, 0] == (
+        pytest.approx(0.02))
+    assert any("RAW_IMU from PX4 is raw sensor counts: not used" in n for n in fl.notes)
+    assert fl.gps is not None and len(fl.gps) == 25 and fl.gps.valid.all()
+    assert np.array_equal(fl.gps.t_us, fl.imu.t_us[::10])  # UNIX time moved onto boot time
+    assert fl.gps.hdop[0] == pytest.approx(0.8) and fl.gps.speed_m_s[0] == pytest.approx(1.5)
+    assert fl.references[0].name == "ATTITUDE" and fl.references[0].t_us[1] == 12_200_000
+    assert fl.temperature is not None and fl.temperature.temperature_c[0] == pytest.approx(35.5)
+
+
 # ------------------------------------------------------------------ bad input
 def _one_error(path: Path, *words: str) -> LogReadError:
     with pytest.raises(LogReadError) as info:
@@ -399,6 +438,18 @@ def _split(data: bytes) -> list[bytes]:
         out.append(m)
         off += ln
     return out
+
+
+def test_an_fmt_with_a_column_too_many_still_reads(tmp_path: Path) -> None:
+    """ArduCopter 3.2 logged some FMTs whose names and letters disagree in number; the record
+    still frames, so its names are taken for the first fields (as pymavlink does) with a note."""
+    path = tmp_path / "extra_name.bin"
+    cols = b"TimeMS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"
+    path.write_bytes(copter31_log(2.0).replace(cols + b"\0", cols + b",ErrRP", 1))
+    fl = read_flight_log(path)
+    (att,) = fl.references
+    assert len(att.t_us) == 10 and np.degrees(att.roll_rad[0]) == pytest.approx(5.12)
+    assert any("(ATT) irregular: 8 column names for 7 format letters" in n for n in fl.notes)
 
 
 def test_a_corrupt_fmt_length_resynchronises(tmp_path: Path) -> None:

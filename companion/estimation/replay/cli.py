@@ -17,7 +17,7 @@ EXIT_OUTPUT = 1
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "replay", help="run PX4 ULog or ArduPilot DataFlash logs through our estimator",
+        "replay", help="run PX4, ArduPilot or MAVLink telemetry logs through our estimator",
         description="Feed a flight controller's IMU and GPS samples through the estimator "
                     "this runtime flies (GPS/INS ESKF; an IMU-only filter, VQF unless told, "
                     "when the log has no GPS fix or the ESKF cannot start) and compare its "

@@ -82,14 +82,18 @@ def parse_fmt(body: bytes) -> DfFormat:
         problem = "name is not text"
     elif any(c not in LETTERS for c in letters):
         problem = f"unknown format letter(s) in {letters!r}"
-    elif len(columns) != len(letters):
-        problem = f"{len(columns)} column names for {len(letters)} format letters"
     else:
         dtype = np.dtype([(f"f{i}", "<" + LETTERS[c] if LETTERS[c][0] not in "(S" else
                            LETTERS[c].replace("i2", "<i2")) for i, c in enumerate(letters)])
         if dtype.itemsize + 3 != length:
             problem = f"length {length} but its format letters make {dtype.itemsize + 3}"
             dtype = None
+        elif len(columns) != len(letters):
+            # a firmware slip (seen in ArduCopter 3.2's EKF5): the record still frames, and
+            # its names are read as naming the first fields, as pymavlink reads them
+            problem = (f"{len(columns)} column names for {len(letters)} format letters: names "
+                       "taken for the first fields")
+            columns = columns[:len(letters)]
     return DfFormat(type_id, length, name, letters, columns, dtype, problem)
 
 
@@ -144,7 +148,8 @@ class _Walker:
                                             f"{f.length}: its messages cannot be followed")
             return
         if f.problem:
-            self.result.fmt_problems.append(f"FMT of type {f.type_id} ({f.name}) unusable: "
+            state = "unusable" if f.dtype is None else "irregular"
+            self.result.fmt_problems.append(f"FMT of type {f.type_id} ({f.name}) {state}: "
                                             f"{f.problem}")
         self.result.formats[f.type_id] = f
         self.lengths[f.type_id] = f.length

@@ -333,8 +333,7 @@ def read_tlog(path: Path, *, strict: bool = False) -> FlightLog:
         t = a[:, 0] if ref == "ATTITUDE" else np.frombuffer(r.recv_us, dtype=float) - offset_us
         refs.append(AttitudeSeries(ref, t.astype(np.int64), a[:, 1].copy(), a[:, 2].copy(),
                                    a[:, 3].copy()))
-    info = {"frames": w.frames, "system": sysid, "autopilot": autopilot,
-            "imu_rate_note": "telemetry rates: the stream rate the ground station asked for"}
+    info = {"frames": w.frames, "system": sysid, "autopilot": autopilot}
     return FlightLog(path, KIND, imu, gps, refs, notes, damage_line(w.skipped), info,
                      temperature, list(w.skipped), [r.name for r in refs])
 
