@@ -425,8 +425,8 @@ def _cli(*args: str, timeout_s: float = 120.0) -> subprocess.CompletedProcess[st
 
 
 def test_cli_replays_the_px4_sample(tmp_path: Path) -> None:
-    out = tmp_path / "out"
-    proc = _cli(str(SAMPLE_ULG), "-o", str(out))
+    proc = _cli(str(SAMPLE_ULG), "-o", str(tmp_path))
+    out = tmp_path / "sample-replay"
     assert proc.returncode == 0, proc.stderr
     assert "vehicle_attitude" in proc.stdout and "IMU-only" in proc.stdout
     summary = json.loads((out / "summary.json").read_text())

@@ -118,6 +118,10 @@ class EstimatorCore:
         self._gyro: list[tuple[float, float, float]] = []
         self._accel: list[tuple[float, float, float]] = []
         self._fix: GpsFix | None = None
+        self.initial_yaw: Callable[[int], float | None] | None = None
+        """A heading to start from, by the start's time (ns): a replay's reference attitude
+        when the GPS course cannot align the heading (a hovering copter). None (the flight):
+        the heading waits for the GPS course."""
 
     # ------------------------------------------------------------------ set-up
     def _set_trim(self) -> None:
@@ -263,7 +267,10 @@ class EstimatorCore:
                       or gyro.std(axis=0).max() > STILL_GYRO_RAD_S
                       or abs(np.linalg.norm(accel_mean) - GRAVITY_M_S2) > 0.5)
         f = self.new_filter(moving)
-        if not f.initialise(accel_mean, np.zeros(3) if moving else gyro_mean, pos, vel):
+        yaw = None
+        if self.initial_yaw is not None and self._last_t_ns is not None:
+            yaw = self.initial_yaw(self._last_t_ns)
+        if not f.initialise(accel_mean, np.zeros(3) if moving else gyro_mean, pos, vel, yaw):
             self.init_failed = True
             log.warning("estimator initialisation refused (IMU mean is not ~1 g)")
             return False

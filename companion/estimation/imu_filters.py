@@ -21,8 +21,8 @@ import numpy as np
 
 from companion.estimation.quat import FloatArray
 
-__all__ = ["ALIASES", "FILTERS", "FilterRun", "ImuSeries", "filter_names", "level_start_zup",
-           "run_filter"]
+__all__ = ["ALIASES", "DEFAULT_FILTER", "FILTERS", "FilterRun", "ImuSeries", "filter_names",
+           "level_start_zup", "resolve", "run_filter", "to_ned"]
 
 
 @dataclass(frozen=True)
@@ -106,6 +106,44 @@ FILTERS: dict[str, FilterRun] = {
 ALIASES: dict[str, str] = {"attitude": "ours"}
 """The SITL evaluation's name for ours (its figures are keyed by it)."""
 
+DEFAULT_FILTER = "vqf"
+"""The IMU-only filter every IMU-only use runs unless told otherwise (the replay's fallback when
+a log has no usable GPS): VQF, because on the real recordings with truth it is as good as ours
+or better (docs/estimation.md, "Which IMU-only filter"), and it is a maintained library rather
+than code of ours to keep tuned. Ours stays selectable by name."""
+
+
+def resolve(name: str) -> str:
+    """The registered name behind ``name`` (an alias or a name); ValueError when unknown."""
+    real = ALIASES.get(name, name)
+    if real not in FILTERS:
+        raise ValueError(
+            f"unknown IMU-only filter {name!r}; choose from {', '.join(filter_names())}")
+    return real
+
+
+_X_PI = np.array((0.0, 1.0, 0.0, 0.0))
+"""Half a turn about x: takes a z-up earth frame (x east-ish, y north-ish) to a z-down one."""
+
+
+def to_ned(q_wxyz: FloatArray, frame: str) -> FloatArray:
+    """Attitudes of either frame as body-to-NED quaternions (heading still arbitrary for a
+    z-up filter: only roll, pitch and heading changes mean anything).
+
+    A z-up filter fed FRD samples aligns the body's measured up (-z body, level and still)
+    with its earth +z, so turning its earth frame half a turn about x makes it z-down (NED
+    with some heading) without touching the body side.
+    """
+    from companion.estimation.quat import quat_multiply
+
+    q = np.asarray(q_wxyz, dtype=float)
+    if frame == "ned":
+        return q
+    if frame != "enu":
+        raise ValueError(f"frame must be 'ned' or 'enu', got {frame!r}")
+    out = quat_multiply(np.broadcast_to(_X_PI, q.shape), q)
+    return np.asarray(out, dtype=float)
+
 
 def filter_names() -> list[str]:
     """Registered names followed by their aliases, for help texts and argument choices."""
@@ -114,10 +152,4 @@ def filter_names() -> list[str]:
 
 def run_filter(name: str, imu: ImuSeries) -> tuple[FloatArray, str]:
     """Run the filter ``name`` (a name from :data:`FILTERS` or an alias) on ``imu``."""
-    try:
-        run = FILTERS[ALIASES.get(name, name)]
-    except KeyError:
-        raise ValueError(
-            f"unknown IMU-only filter {name!r}; choose from {', '.join(filter_names())}"
-        ) from None
-    return run(imu)
+    return FILTERS[resolve(name)](imu)

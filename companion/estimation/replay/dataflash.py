@@ -89,7 +89,10 @@ def _imu(path: Path, w: DfWalk, imu_instance: int | None, notes: list[str]
         why = (f"its {', '.join(present)} messages have no time field (TimeUS or TimeMS)"
                if untimed else f"{', '.join(present)} logged but its FMT is unusable"
                if present else "no IMU messages")
-        raise LogReadError(path, f"{FORMAT}: {why}")
+        # a partial replay (its GPS and references listed), not a refusal
+        notes.append(f"{FORMAT}: {why}")
+        return (ImuSeries(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), "none"),
+                np.zeros(0), "none", [])
     counts = {i: sum(len(b) for b in bl) for i, bl in sorted(parts.items())}
     instances = list(counts)
     if imu_instance is not None:
@@ -197,6 +200,9 @@ def read_dataflash(path: Path, *, strict: bool = False, imu_instance: int | None
     if gps is None:
         notes.append("no GPS messages: IMU-only")
     refs = _references(w, notes)
+    if not len(imu.t_us) and gps is None and not refs:
+        raise LogReadError(path, f"{FORMAT}: no IMU, GPS or attitude messages: nothing to "
+                                 "replay")
     available = [n for n in REFERENCES if w.counts.get(n)]
     info = {"imu_instances": instances, "messages": w.messages, "size_bytes": w.size,
             "types": len(w.formats)}

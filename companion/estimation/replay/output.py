@@ -32,7 +32,15 @@ OURS_COLUMNS = ["roll_rad", "pitch_rad", "yaw_rad", "north_m", "east_m", "down_m
 OURS_FORMAT = ",".join(["%.6f"] * 3 + ["%.3f"] * 6) + ",%hhu,%u"
 REF_FORMAT = "%.6f,%.6f,%.6f"
 ESTIMATOR_LABELS = {"eskf": "ESKF (GPS/INS, EstimatorCore)",
-                    "attitude": "IMU-only AttitudeFilter (no GPS: heading arbitrary)"}
+                    "attitude": "IMU-only (no GPS: heading arbitrary)",
+                    "none": "none (no IMU samples)"}
+
+
+def estimator_label(result: ReplayResult) -> str:
+    """What ran, in words: the IMU-only filter by its registry name."""
+    if result.estimator == "attitude":
+        return f"IMU-only {result.imu_filter} (no GPS: heading arbitrary)"
+    return ESTIMATOR_LABELS[result.estimator]
 
 
 def _label(name: str) -> str:
@@ -84,8 +92,9 @@ def summary_dict(result: ReplayResult, files: dict[str, str]) -> dict[str, Any]:
     span = (float(est.t_us[-1] - est.t_us[0]) / 1e6) if len(est.t_us) else 0.0
     out: dict[str, Any] = {
         "log": str(f.path), "format": f.kind, "log_info": f.info,
-        "estimator": result.estimator, "estimator_label": ESTIMATOR_LABELS[result.estimator],
-        "estimator_reason": result.estimator_reason,
+        "estimator": result.estimator, "estimator_label": estimator_label(result),
+        "estimator_reason": result.estimator_reason, "imu_filter": result.imu_filter or None,
+        "start": result.start.as_dict(),
         "imu_source": f.imu.source, "gps_source": f.gps.source if f.gps is not None else None,
         "estimate": {"samples": len(est.t_us), "span_s": round(span, 3),
                      "start_s": round((int(est.t_us[0]) - result.t0_us) / 1e6, 3)
@@ -165,7 +174,7 @@ def write_figure(result: ReplayResult, path: Path) -> Path:
     ax.grid(True, alpha=0.3)
     if result.comparisons:
         ax.legend(loc="upper right", fontsize=8)
-    fig.suptitle(f"{result.flight.path.name}: {ESTIMATOR_LABELS[result.estimator]}",
+    fig.suptitle(f"{result.flight.path.name}: {estimator_label(result)}",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

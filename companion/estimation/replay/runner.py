@@ -1,10 +1,9 @@
 """Run a flight-controller log through this project's estimator and compare the result.
 
 The estimator is the flight's: `EstimatorCore` (GPS/INS ESKF, the estimator thread's parameter
-defaults, sample periods from the samples' time stamps) when the log has usable GPS fixes, else
-the IMU-only `AttitudeFilter`. Samples are handed over in cycles of `output_period_s`, as the
-thread drains its IMU queue, with the newest GPS fix of the cycle and the IMU temperature at
-most once a second, through the thread's own `EstimatorCore.cycle`.
+defaults, sample periods from the samples' time stamps) when the log has usable GPS fixes and
+it starts (`start` says how, or why not), else an IMU-only filter of the registry
+(`companion.estimation.imu_filters`, VQF unless told): `filters` runs both.
 
 Logs are not clean, so every timeline is cleaned first and what was done is reported, never
 raised: repeated time stamps (duplicated samples) and small steps back (out of order) are
@@ -12,6 +11,9 @@ dropped; a step back of `CLOCK_JUMP_S` or more is a clock jump, and the rest of 
 shifted to continue one sample period after the jump (the same shift for every stream, so they
 stay aligned); long steps forward are gaps, which the ESKF coasts through as in flight and the
 IMU-only filter bridges with one nominal period (a gap's rotation is unknown either way).
+
+A log without IMU samples gives a partial replay (no estimate, its references and GPS listed),
+never an exception: the notes say what was used.
 """
 
 from __future__ import annotations
@@ -25,7 +27,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from companion.estimation.imu_filters import DEFAULT_FILTER
+from companion.estimation.replay.filters import Estimate, run_eskf, run_imu_only
 from companion.estimation.replay.sources import AttitudeSeries, FlightLog, GpsSeries
+from companion.estimation.replay.start import StartReport, heading_lookup, why_no_fix
 
 log = logging.getLogger(__name__)
 
@@ -124,27 +129,21 @@ def clean_timeline(t_us: IntArray, name: str, t0_us: int,
 
 @dataclass
 class ReplayOptions:
-    """`estimator`: "auto" (ESKF when the log has GPS fixes, else IMU-only), "eskf" or
-    "attitude". `skip_s`: seconds after our estimator starts that are not scored (it is still
+    """`estimator`: "auto" (ESKF when the log has GPS fixes and it starts, else IMU-only),
+    "eskf" or "attitude" (IMU-only). `imu_filter`: the IMU-only filter by registry name.
+    `heading_from`: "auto" (the GPS course when the first fix is already fast enough to give
+    one, else the log's first reference), "gps" (the flight's: the GPS course aligns the
+    heading) or the name of one of the log's references (or "ref": the first) whose yaw
+    starts the ESKF's heading.
+    `skip_s`: seconds after our estimator starts that are not scored (it is still
     converging). `params`: estimator-thread parameters by suffix (``GPS_LAG``...)."""
 
     estimator: str = "auto"
     skip_s: float = 2.0
     output_period_s: float = 0.01
     params: dict[str, float] = field(default_factory=dict)
-
-
-@dataclass
-class Estimate:
-    """Our estimate at each output instant (log time, corrected)."""
-
-    t_us: IntArray
-    quat_wxyz: FloatArray
-    euler_rad: FloatArray
-    pos_ned_m: FloatArray
-    vel_ned_m_s: FloatArray
-    aligned: npt.NDArray[np.bool_]
-    faults: IntArray
+    imu_filter: str = DEFAULT_FILTER
+    heading_from: str = "auto"
 
 
 @dataclass
@@ -161,7 +160,7 @@ class Comparison:
 @dataclass
 class ReplayResult:
     flight: FlightLog
-    estimator: str  # "eskf" or "attitude"
+    estimator: str  # "eskf", "attitude" (IMU-only) or "none" (no IMU samples)
     estimator_reason: str
     estimate: Estimate
     t0_us: int
@@ -170,6 +169,8 @@ class ReplayResult:
     notes: list[str]
     stats: dict[str, Any]
     run_time_s: float = 0.0
+    start: StartReport = field(default_factory=StartReport)
+    imu_filter: str = ""  # the IMU-only filter that ran ("" when the ESKF did)
 
 
 def replay_params(overrides: dict[str, float] | None = None) -> dict[str, float]:
@@ -203,136 +204,6 @@ def _gps_fixes(gps: GpsSeries, keep: IntArray, t_us: IntArray) -> list[Any]:
             vn_m_s=opt(gps.vn_m_s, i), ve_m_s=opt(gps.ve_m_s, i), vd_m_s=opt(gps.vd_m_s, i),
             alt_std_m=opt(gps.v_std_m, i), h_std_m=opt(gps.h_std_m, i)))
     return fixes
-
-
-class _Recorder:
-    def __init__(self) -> None:
-        self.t: list[int] = []
-        self.q: list[tuple[float, ...]] = []
-        self.pos: list[tuple[float, ...]] = []
-        self.vel: list[tuple[float, ...]] = []
-        self.aligned: list[bool] = []
-        self.faults: list[int] = []
-
-    def done(self) -> Estimate:
-        from companion.estimation.quat import quat_to_euler
-
-        q = np.asarray(self.q, dtype=float).reshape(-1, 4)
-        return Estimate(np.asarray(self.t, dtype=np.int64), q, quat_to_euler(q),
-                        np.asarray(self.pos, dtype=float).reshape(-1, 3),
-                        np.asarray(self.vel, dtype=float).reshape(-1, 3),
-                        np.asarray(self.aligned, dtype=bool),
-                        np.asarray(self.faults, dtype=np.int64))
-
-
-def _run_eskf(t_us: IntArray, gyro: FloatArray, accel: FloatArray, fixes: list[Any],
-              params: dict[str, float], period_us: int,
-              temps: list[tuple[int, float]] | None = None) -> tuple[Estimate, dict[str, Any]]:
-    """`EstimatorCore` through its public cycle, one cycle per output period.
-
-    ``temps`` (time us on the IMU's timeline, C) reach the filter at most once a simulated
-    second, as the flight thread gets them from the IMU's 1 Hz slow block: the default
-    temperature coefficients were chosen with that rate.
-    """
-    from companion.core.state import ImuSample
-    from companion.estimation.fusion import EstimatorCore
-
-    core = EstimatorCore(params, None, dt_source="time")
-    rec = _Recorder()
-    g_list, a_list, t_list = gyro.tolist(), accel.tolist(), t_us.tolist()
-    n = len(t_list)
-    gi = 0
-    batch: list[ImuSample] = []
-    batch_t0 = t_list[0] if n else 0
-    started_at: int | None = None
-    temps = temps or []
-    ti = 0
-    next_temp_us = -(1 << 62)
-    for k in range(n):
-        tk = t_list[k]
-        batch.append(ImuSample(tk * 1000, k & 0xFFFF, tuple(g_list[k]),  # type: ignore[arg-type]
-                               tuple(a_list[k])))  # type: ignore[arg-type]
-        if tk - batch_t0 < period_us and k < n - 1:
-            continue
-        fix = None
-        while gi < len(fixes) and fixes[gi].t_ns <= tk * 1000:
-            fix = fixes[gi]
-            gi += 1
-        # the temperatures logged up to now, at most once a second: consumed only once the
-        # filter runs (a cycle before its start leaves them for the first one after)
-        temp_c = None
-        tj = ti
-        if ti < len(temps) and tk >= next_temp_us:
-            while tj < len(temps) and temps[tj][0] <= tk:
-                temp_c = temps[tj][1]
-                tj += 1
-        running = core.cycle(batch, fix, temperature_c=temp_c)
-        batch = []
-        batch_t0 = tk
-        if core.filter is not None:
-            ti = tj
-            if temp_c is not None:
-                next_temp_us = tk + 1_000_000
-        if not running or core.filter is None:
-            if core.init_failed:
-                break
-            continue
-        if started_at is None:
-            started_at = tk
-        st = core.filter.state()
-        rec.t.append(tk)
-        rec.q.append(tuple(st.quaternion.tolist()))
-        rec.pos.append(tuple(st.pos_ned_m.tolist()))
-        rec.vel.append(tuple(st.vel_ned_m_s.tolist()))
-        rec.aligned.append(bool(st.initialised and st.yaw_aligned))
-        rec.faults.append(int(st.faults))
-    est = rec.done()
-    stats: dict[str, Any] = {
-        "started": started_at is not None, "init_refused": core.init_failed,
-        "moving_start": core.moving_start, "gps_fixes_offered": len(fixes),
-        "gps_accepted": core.gps_accepted, "gps_rejected": core.gps_rejected,
-        "temperature_readings": core.temperature_readings,
-        "faults": int(est.faults[-1]) if len(est.faults) else 0,
-        "heading_aligned_fraction": float(est.aligned.mean()) if len(est.aligned) else 0.0}
-    if core.filter is not None:
-        st = core.filter.state()
-        stats["last_fault_reason"] = st.last_fault_reason or None
-        stats["gyro_bias_rad_s"] = [round(float(x), 6) for x in st.gyro_bias_rad_s]
-        stats["accel_bias_m_s2"] = [round(float(x), 5) for x in st.accel_bias_m_s2]
-    return est, stats
-
-
-def _run_attitude(t_us: IntArray, gyro: FloatArray, accel: FloatArray, gap_us: float,
-                  nominal_s: float, period_us: int) -> tuple[Estimate, dict[str, Any]]:
-    """The IMU-only filter through its public `update`; a gap is bridged with one period."""
-    from companion.estimation.attitude import AttitudeFilter
-
-    f = AttitudeFilter()
-    rec = _Recorder()
-    t_list = t_us.tolist()
-    last_out: int | None = None
-    bridged = 0
-    nan3 = (math.nan, math.nan, math.nan)
-    for k, tk in enumerate(t_list):
-        if k == 0:
-            dt = nominal_s
-        else:
-            step = tk - t_list[k - 1]
-            if step > gap_us:
-                dt = nominal_s
-                bridged += 1
-            else:
-                dt = step / 1e6
-        q = f.update(gyro[k], accel[k], dt)
-        if last_out is None or tk - last_out >= period_us or k == len(t_list) - 1:
-            last_out = tk
-            rec.t.append(tk)
-            rec.q.append(tuple(np.asarray(q, dtype=float).tolist()))
-            rec.pos.append(nan3)
-            rec.vel.append(nan3)
-            rec.aligned.append(False)
-            rec.faults.append(0)
-    return rec.done(), {"started": bool(rec.t), "gaps_bridged": bridged}
 
 
 def _stats(x: FloatArray) -> dict[str, float | None]:
@@ -388,21 +259,69 @@ def compare(est: Estimate, ref: AttitudeSeries, ref_t_us: IntArray, keep: IntArr
             "roll_deg": _stats(err[:, 0]), "pitch_deg": _stats(err[:, 1]),
             "yaw_deg": _stats(err[:, 2]), "inclination_deg": _stats(err[:, 3]),
             "yaw_offset_removed_deg": None if not math.isfinite(offset)
-            else round(math.degrees(offset), 3)}
+            else round(math.degrees(offset), 3),
+            # the time alignment: nearest reference sample, no shift (docs/estimation.md)
+            "match_tolerance_ms": round(tol / 1e3, 1),
+            "median_time_offset_ms": round(float(np.median(
+                np.abs(ref_t_us[nearer] - est.t_us)[scored])) / 1e3, 1)
+            if scored.any() else None}
     return Comparison(ref.name, est.t_us, err, metrics, ref_at)
+
+
+def _check_options(opts: ReplayOptions, flight: FlightLog) -> None:
+    """Bad options are the caller's mistake (ValueError), not the log's."""
+    from companion.estimation.imu_filters import resolve
+
+    if opts.estimator not in ("auto", "eskf", "attitude"):
+        raise ValueError(f"estimator must be auto, eskf or attitude, got {opts.estimator!r}")
+    resolve(opts.imu_filter)
+
+
+HEADING_SPEED_M_S = 5.0
+"""The ground speed from which the ESKF takes its heading from the GPS course (its
+`yaw_align_min_speed_m_s`): "auto" asks the log's attitude below it."""
+
+
+def _heading_reference(opts: ReplayOptions, flight: FlightLog, ref_tl: list[Any],
+                       fixes: list[Any], notes: list[str]) -> tuple[str, Any]:
+    """(what starts the heading, a lookup of its yaw by time or None).
+
+    "auto" takes the log's attitude when the first fix is too slow for a GPS course (a vehicle
+    on the ground or hovering at the start): on 38 real ArduPilot logs an unaligned heading
+    cost the ESKF more inclination than the reference's heading (docs/estimation.md)."""
+    want = opts.heading_from
+    if want == "auto":
+        first = fixes[0] if fixes else None
+        speed = 0.0
+        if first is not None:
+            if first.vn_m_s is not None and first.ve_m_s is not None:
+                speed = math.hypot(first.vn_m_s, first.ve_m_s)
+            elif first.speed_m_s is not None:
+                speed = first.speed_m_s
+        if speed >= HEADING_SPEED_M_S or not ref_tl:
+            return "gps", None
+        want = "ref"
+    if want == "gps":
+        return "gps", None
+    for ref, r_keep, r_t in ref_tl:
+        if want in ("ref", ref.name):
+            return ref.name, heading_lookup(r_t, ref.yaw_rad[r_keep])
+    names = ", ".join(r.name for r in flight.references) or "none"
+    notes.append(f"--heading-from {want}: the log has no such reference ({names}): the "
+                 "heading waits for the GPS course")
+    return "gps", None
 
 
 def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayResult:
     """Clean the timelines, run the estimator, compare with every reference. Never raises on
     the data (bad parameters in `options` raise ValueError)."""
     opts = options or ReplayOptions()
-    if opts.estimator not in ("auto", "eskf", "attitude"):
-        raise ValueError(f"estimator must be auto, eskf or attitude, got {opts.estimator!r}")
+    _check_options(opts, flight)
     params = replay_params(opts.params)
     started = time.perf_counter()
     notes = list(flight.notes)
     imu = flight.imu
-    t0_us = int(imu.t_us[0]) if len(imu.t_us) else 0
+    t0_us = int(imu.t_us[0]) if len(imu.t_us) else _first_time(flight)
     keep, t_imu, tl_imu, shifts = clean_timeline(imu.t_us, "imu", t0_us)
     timelines = {"imu": tl_imu}
     gyro, accel = imu.gyro_rad_s[keep], imu.accel_m_s2[keep]
@@ -418,9 +337,11 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
     nominal_s = 1.0 / rate if math.isfinite(rate) and rate > 0 else 0.01
     gap_us = max(GAP_MIN_S * 1e6, GAP_PERIODS * nominal_s * 1e6)
     fixes: list[Any] = []
+    gps_t: IntArray | None = None
     if flight.gps is not None and len(flight.gps):
         g_keep, g_t, tl_gps, _ = clean_timeline(flight.gps.t_us, "gps", t0_us, shifts)
         timelines["gps"] = tl_gps
+        gps_t = g_t
         fixes = _gps_fixes(flight.gps, g_keep, g_t)
         if not fixes:
             notes.append(f"{flight.gps.source}: {len(flight.gps)} GPS message(s), none with a "
@@ -430,16 +351,32 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
         r_keep, r_t, tl_ref, _ = clean_timeline(ref.t_us, ref.name, t0_us, shifts)
         timelines[ref.name] = tl_ref
         ref_tl.append((ref, r_keep, r_t))
+    report = StartReport()
+    if len(t_imu):
+        report.imu_span_s = (0.0, (int(t_imu[-1]) - t0_us) / 1e6)
+    if gps_t is not None and len(gps_t):
+        report.gps_span_s = ((int(gps_t[0]) - t0_us) / 1e6, (int(gps_t[-1]) - t0_us) / 1e6)
+    fix_t = [f.t_ns // 1000 for f in fixes]
+    if fix_t:
+        report.first_fix_s = (fix_t[0] - t0_us) / 1e6
+    no_fix = (why_no_fix(t_imu, gps_t, fix_t, len(fixes), t0_us) if len(t_imu)
+              else "no IMU samples")
 
     choice = opts.estimator
-    if choice == "auto":
-        choice = "eskf" if fixes else "attitude"
-        reason = f"{len(fixes)} GPS fixes" if fixes else "no GPS fix in the log"
+    if not len(t_imu):
+        choice, reason = "none", "the log has no usable IMU samples"
+        notes.append("the log has no usable IMU samples: nothing estimated; its GPS and "
+                     "references are listed only")
+    elif choice == "auto":
+        choice = "attitude" if no_fix else "eskf"
+        reason = f"{len(fixes)} GPS fixes" if not no_fix else f"no GPS fix to start: {no_fix}"
     else:
         reason = "asked for"
-    if choice == "eskf" and not fixes:
-        notes.append("the ESKF was asked for but the log has no GPS fix: IMU-only instead")
-        choice, reason = "attitude", "no GPS fix in the log"
+    if choice == "eskf" and no_fix:
+        notes.append(f"the ESKF was asked for but cannot start ({no_fix}): IMU-only instead")
+        choice, reason = "attitude", f"no GPS fix to start: {no_fix}"
+    if no_fix and choice != "none":
+        report.reason = no_fix
     period_us = max(1, int(opts.output_period_s * 1e6))
     temps: list[tuple[int, float]] = []
     temp = flight.temperature
@@ -447,8 +384,12 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
         t_keep, t_t, tl_temp, _ = clean_timeline(temp.t_us, "temperature", t0_us, shifts)
         timelines["temperature"] = tl_temp
         temps = list(zip(t_t.tolist(), temp.temperature_c[t_keep].tolist(), strict=True))
-    stats: dict[str, Any]
+    stats: dict[str, Any] = {"started": False}
+    est = Estimate.empty()
+    imu_filter = ""
     if choice == "eskf":
+        report.heading_from, initial_yaw = _heading_reference(opts, flight, ref_tl, fixes,
+                                                              notes)
         if temp is not None and temps:
             c = temp.temperature_c[t_keep]
             notes.append(f"IMU temperature from {temp.source}: {float(c.min()):.1f} to "
@@ -456,14 +397,25 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
         else:
             notes.append("the log has no IMU temperature: the biases' temperature walk "
                          "(EST_GB_TEMP, EST_AB_TEMP) stays off")
-        est, stats = _run_eskf(t_imu, gyro, accel, fixes, params, period_us, temps)
+        est, stats = run_eskf(t_imu, gyro, accel, fixes, params, period_us, report, t0_us,
+                              temps, initial_yaw)
+        if report.refusals:
+            notes.append(f"the ESKF's start was refused {len(report.refusals)} time(s) (the "
+                         "accelerometer's mean not about 1 g), first at "
+                         f"{report.refusals[0][0]:.1f} s; started again on later samples")
+        if report.restarts:
+            notes.append(f"the ESKF started again after {len(report.restarts)} IMU gap(s) "
+                         f"longer than 5 s (first at {report.restarts[0][0]:.1f} s, "
+                         f"{report.restarts[0][1]:.1f} s long)")
         if not stats["started"]:
-            why = ("its initialisation was refused (IMU mean is not ~1 g)"
-                   if stats["init_refused"] else "it never got its initial phase and a fix")
-            notes.append(f"the ESKF did not start ({why}): IMU-only attitude instead")
-            choice, reason = "attitude", f"ESKF did not start: {why}"
+            notes.append(f"the ESKF did not start ({report.reason}): IMU-only attitude "
+                         "instead")
+            choice, reason = "attitude", f"ESKF did not start: {report.reason}"
     if choice == "attitude":
-        est, stats = _run_attitude(t_imu, gyro, accel, gap_us, nominal_s, period_us)
+        est, stats_imu = run_imu_only(opts.imu_filter, t_imu, gyro, accel, nominal_s,
+                                      period_us, gap_us)
+        imu_filter = str(stats_imu["imu_filter"])
+        stats = {**stats_imu, "eskf": stats} if stats.get("gps_fixes_offered") else stats_imu
     if stats.get("faults"):
         notes.append(f"the ESKF reset {stats['faults']} time(s) (last: "
                      f"{stats.get('last_fault_reason')}); see the log's gaps")
@@ -475,8 +427,23 @@ def replay(flight: FlightLog, options: ReplayOptions | None = None) -> ReplayRes
         notes.append("the log has no attitude of the flight controller to compare with")
     if choice == "eskf" and len(est.aligned) and not est.aligned.any():
         notes.append("the ESKF's heading never aligned (ground speed stayed under "
-                     "5 m/s): yaw is not compared")
+                     "5 m/s): yaw is not compared (--heading-from ref starts it from the "
+                     "log's own attitude)")
+    if choice == "eskf" and report.heading_from not in ("gps", ""):
+        notes.append(f"the ESKF's heading started from {report.heading_from}'s yaw "
+                     f"({report.heading_start_deg:.1f} deg): its yaw difference shows how "
+                     "the heading held, not an independent heading"
+                     if report.heading_start_deg is not None else
+                     f"no {report.heading_from} yaw near the start: the heading waited for "
+                     "the GPS course")
     result = ReplayResult(flight, choice, reason, est, t0_us, timelines, comparisons, notes,
-                          stats)
+                          stats, start=report, imu_filter=imu_filter)
     result.run_time_s = time.perf_counter() - started
     return result
+
+
+def _first_time(flight: FlightLog) -> int:
+    """The log's first time stamp of any stream (the origin when there is no IMU)."""
+    firsts = [int(s.t_us[0]) for s in (flight.gps, *flight.references)
+              if s is not None and len(s.t_us)]
+    return min(firsts) if firsts else 0

@@ -238,16 +238,19 @@ def read_ulog(path: Path, *, strict: bool = False) -> FlightLog:
     sets = {(d.name, d.multi_id): d.data for d in ulog.data_list}
     sc = sets.get(("sensor_combined", 0))
     if sc is None or not len(sc["timestamp"]):
-        raise LogReadError(path, f"{FORMAT}: no sensor_combined messages (the IMU)")
-    gyro_cols = [_field(sc, f"gyro_rad[{i}]", f"gyro_rad_s[{i}]") for i in range(3)]
-    acc_cols = [_field(sc, f"accelerometer_m_s2[{i}]") for i in range(3)]
-    if any(c is None for c in gyro_cols + acc_cols):
-        raise LogReadError(path, f"{FORMAT}: sensor_combined has no gyro_rad/"
-                                 "accelerometer_m_s2 fields")
-    imu = ImuSeries(np.asarray(sc["timestamp"], dtype=np.int64),
-                    np.column_stack([np.asarray(c, dtype=float) for c in gyro_cols]),
-                    np.column_stack([np.asarray(c, dtype=float) for c in acc_cols]),
-                    "sensor_combined")
+        # a partial replay (its GPS and references listed), not a refusal
+        notes.append(f"{FORMAT}: no sensor_combined messages (the IMU)")
+        imu = ImuSeries(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), "none")
+    else:
+        gyro_cols = [_field(sc, f"gyro_rad[{i}]", f"gyro_rad_s[{i}]") for i in range(3)]
+        acc_cols = [_field(sc, f"accelerometer_m_s2[{i}]") for i in range(3)]
+        if any(c is None for c in gyro_cols + acc_cols):
+            raise LogReadError(path, f"{FORMAT}: sensor_combined has no gyro_rad/"
+                                     "accelerometer_m_s2 fields")
+        imu = ImuSeries(np.asarray(sc["timestamp"], dtype=np.int64),
+                        np.column_stack([np.asarray(c, dtype=float) for c in gyro_cols]),
+                        np.column_stack([np.asarray(c, dtype=float) for c in acc_cols]),
+                        "sensor_combined")
     instances = sorted(m for (name, m) in sets if name == "sensor_combined")
     if len(instances) > 1:
         notes.append(f"sensor_combined has instances {instances}: instance 0 used")
@@ -289,6 +292,9 @@ def read_ulog(path: Path, *, strict: bool = False) -> FlightLog:
             temperature = temperature_series(d["timestamp"], d[column], f"{name}.{column}")
             if temperature is not None:
                 break
+    if not len(imu.t_us) and gps is None and not refs:
+        raise LogReadError(path, f"{FORMAT}: no sensor_combined messages (the IMU), no GPS "
+                                 "and no attitude: nothing to replay")
     available = [n for n in REFERENCES if (n, 0) in sets]
     return FlightLog(path, KIND, imu, gps, refs, notes, damage, info, temperature,
                      skipped, available)
