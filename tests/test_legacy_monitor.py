@@ -281,7 +281,9 @@ def test_command_times_out_without_ack(link: MonitorLink) -> None:
         silent.close()
     assert outcome.ack is None and not outcome.accepted
     assert 0.3 <= waited < 2.0
-    assert "no ACK after 0.3 s" in outcome.text
+    # the text says how long it waited: the 0.3 s timeout, or a little more on a busy machine
+    assert 0.3 <= outcome.elapsed_s <= waited
+    assert f"no ACK after {outcome.elapsed_s:.1f} s" in outcome.text
 
 
 def test_two_monitors_share_the_port_for_broadcast() -> None:

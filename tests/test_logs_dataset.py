@@ -93,7 +93,8 @@ def test_flights_and_restarts_tables_hold_the_runs_json(flights: list[Path], dat
     cols, rows = query(dataset, "SELECT flight, start_utc, seed, scenario, faults, restarts, "
                                 "restarts_by_thread['gps'], complete, problems, duration_s "
                                 "FROM flights ORDER BY flight")
-    for flight, row in zip(flights, rows, strict=True):
+    by_name = sorted(flights, key=lambda f: f.name)  # the query's order, not the vehicles'
+    for flight, row in zip(by_name, rows, strict=True):
         run = _run(flight)
         assert row[0] == flight.name
         assert row[1].isoformat() == run["started_utc"]
@@ -105,8 +106,9 @@ def test_flights_and_restarts_tables_hold_the_runs_json(flights: list[Path], dat
 
 def test_inclination_error_per_flight_matches_numpy(flights: list[Path], dataset: Path) -> None:
     _, rows = query(dataset, INCLINATION_SQL)
-    assert [r[1] for r in rows] == [f.name for f in flights]
-    for flight, (_, _, got) in zip(flights, rows, strict=True):
+    by_name = sorted(flights, key=lambda f: f.name)  # the query's order, not the vehicles'
+    assert [r[1] for r in rows] == [f.name for f in by_name]
+    for flight, (_, _, got) in zip(by_name, rows, strict=True):
         est, truth = read_log(flight / "estimator.bin"), read_log(flight / "truth.bin")
         e, e_ns = est.data(1), est.time_ns(1)
         t, t_ns = truth.data(1), truth.time_ns(1)
