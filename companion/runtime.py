@@ -69,6 +69,11 @@ BridgeFactory = Callable[[RuntimeContext, ThreadManager], "Bridge"]
 """Makes a bridge for a runtime being built; the bridge may add threads to the manager."""
 
 
+def _already_stopping(signum: int, _frame: object) -> None:
+    """A stop signal after the runtime has stopped on one: nothing more to do."""
+    log.info("signal %s: already stopping", signal.Signals(signum).name)
+
+
 @dataclass
 class RuntimeOptions:
     """What the command line adds to the configuration for one run."""
@@ -293,7 +298,10 @@ class Runtime:
             yield
             return
 
+        signalled: list[int] = []
+
         def handler(signum: int, _frame: object) -> None:
+            signalled.append(signum)
             self.manager.request_stop(f"signal {signal.Signals(signum).name}")
 
         old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -301,7 +309,10 @@ class Runtime:
             yield
         finally:
             for s, h in old.items():
-                signal.signal(s, h)
+                # A process a signal has stopped is ending: a repeated stop signal (a fleet
+                # resends SIGINT to aircraft that may have started with it ignored) must not
+                # become a KeyboardInterrupt in what is left to do (reports, the world's exit).
+                signal.signal(s, _already_stopping if signalled else h)
 
     # ------------------------------------------------------------------ reporting
     def summary(self) -> dict[str, Any]:
