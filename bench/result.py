@@ -13,16 +13,20 @@ so what a run prints is what the page will show.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import platform
+import re
 import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ROOT / "bench" / "results"
@@ -110,6 +114,18 @@ class Result:
         self.notes.append(text)
         print(f"\n{text}", flush=True)
 
+    @contextlib.contextmanager
+    def capture(self) -> Iterator[None]:
+        """Records the markdown a benchmark prints (headings, tables, the text around them)
+        while still printing it: for benchmarks that format their own tables."""
+        tee = _Tee(sys.stdout)
+        sys.stdout = tee
+        try:
+            yield
+        finally:
+            sys.stdout = tee.out
+            self.tables += parse_markdown(tee.buf.getvalue())
+
     def as_dict(self) -> dict[str, Any]:
         commit = _git("rev-parse", "HEAD") or "unknown"
         dirty = _git("status", "--porcelain", "--", *self.paths_measured)
@@ -163,3 +179,69 @@ def markdown_table(columns: list[str], rows: list[list[Cell]]) -> str:
 def split_row(row: str) -> list[Cell]:
     """The cells of a markdown table row a benchmark formatted itself (`| a | b |`)."""
     return [c.strip() for c in row.strip().strip("|").split(" | ")]
+
+
+class _Tee(io.TextIOBase):
+    def __init__(self, out: TextIO) -> None:
+        self.out = out
+        self.buf = io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.buf.write(text)
+        return self.out.write(text)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+def parse_markdown(text: str) -> list[dict[str, Any]]:
+    """Tables of printed markdown: each with the heading above it (title), the text between
+    heading and table (intro) and the text after it up to the next heading or table (note)."""
+    tables: list[dict[str, Any]] = []
+    title = ""
+    intro: list[str] = []
+    rows: list[list[Cell]] = []
+    after: list[str] | None = None
+
+    def close() -> None:
+        nonlocal title, intro, rows, after
+        if rows:
+            tables.append({"title": title, "intro": "\n".join(intro).strip(),
+                           "columns": rows[0], "rows": rows[1:], "note": ""})
+            title, intro, rows = "", [], []
+            after = []
+
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("|"):
+            if after is not None and not rows:
+                tables[-1]["note"] = "\n".join(after).strip()
+                after = None
+            if not re.fullmatch(r"\|(\s*:?-+:?\s*\|)+", stripped):
+                rows.append(split_row(stripped))
+            continue
+        close()
+        if stripped.startswith("#"):
+            if after is not None:
+                tables[-1]["note"] = "\n".join(after).strip()
+                after = None
+            title, intro = stripped.lstrip("#").strip(), []
+        elif after is not None:
+            after.append(line)
+        else:
+            intro.append(line)
+    close()
+    if after is not None and tables:
+        tables[-1]["note"] = "\n".join(after).strip()
+    return tables
+
+
+def run_captured(name: str, paths_measured: list[str], main: Callable[[], int | None]) -> int:
+    """Runs a benchmark's `main` that prints its own markdown, records what it prints and
+    writes the result when it succeeds (a failed run leaves the last good result in place)."""
+    res = Result(name, paths_measured, quick="--quick" in sys.argv[1:])
+    with res.capture():
+        code = main() or 0
+    if code == 0:
+        res.write()
+    return code

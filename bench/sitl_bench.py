@@ -154,4 +154,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("sitl", ["companion", "gcs_bridge", "legacy_protocol"], main))
