@@ -145,7 +145,14 @@ def _cores(data: dict[str, Any]) -> str:
     return f"{n} cores, " if n else ""
 
 
-def header(stored: Stored, root: Path, page_dir: Path) -> list[str]:
+def _paths(stored: Stored, attrs: dict[str, str]) -> list[str]:
+    """The measured code: from the result, or for an older result that does not name it, from
+    the block's `paths=a,b` attribute."""
+    named = stored.data.get("paths_measured") or attrs.get("paths", "").split(",")
+    return [str(p) for p in named if p]
+
+
+def header(stored: Stored, attrs: dict[str, str], root: Path, page_dir: Path) -> list[str]:
     d = stored.data
     commit = str(d.get("commit") or "unknown")
     link = os.path.relpath(stored.path, page_dir)
@@ -153,7 +160,7 @@ def header(stored: Stored, root: Path, page_dir: Path) -> list[str]:
     lines = [f"*`{d.get('command', '(command not recorded)')}` at commit `{commit[:10]}`, "
              f"{str(d.get('date', '?'))[:10]} ({_cores(d)}{_load_text(d)}{wall}); "
              f"raw result [{stored.path.name}]({link}).*", ""]
-    status = staleness(root, commit, list(d.get("paths_measured") or []))
+    status = staleness(root, commit, _paths(stored, attrs))
     lines.append(f"Status: {status}.")
     dirty = d.get("uncommitted_changes") or []
     if dirty:
@@ -172,7 +179,7 @@ def render_block(name: str, attrs: dict[str, str], newest: dict[str, Stored], ro
                     f"({os.path.relpath(root / legacy, page_dir)}), measured on older code. "
                     f"Re-run the command in the heading to replace them.\n")
         return f"No result yet (no `bench/results/<date>-{name}.json`).\n"
-    lines = header(stored, root, page_dir)
+    lines = header(stored, attrs, root, page_dir)
     if not stored.structured:
         lines += ["", "This result predates bench/result.py: its figures are in the raw file, "
                   "not rendered here."]
@@ -180,12 +187,19 @@ def render_block(name: str, attrs: dict[str, str], newest: dict[str, Stored], ro
         lines.append("")
         if t.get("title"):
             lines += [f"**{t['title']}**", ""]
+        if t.get("intro"):
+            lines += [_squeeze(t["intro"]), ""]
         lines.append(markdown_table(t["columns"], t["rows"]))
         if t.get("note"):
-            lines += ["", t["note"]]
+            lines += ["", _squeeze(t["note"])]
     for note in stored.data.get("notes", []):
-        lines += ["", note]
+        lines += ["", _squeeze(note)]
     return "\n".join(lines) + "\n"
+
+
+def _squeeze(text: str) -> str:
+    """Printed text as page paragraphs: runs of blank lines become one."""
+    return re.sub(r"\n\s*\n+", "\n\n", text.strip())
 
 
 def render_index(blocks: list[tuple[str, dict[str, str]]], newest: dict[str, Stored],
@@ -199,7 +213,7 @@ def render_index(blocks: list[tuple[str, dict[str, str]]], newest: dict[str, Sto
             lines.append(f"| {name} | - | - | - | {state} |")
             continue
         commit = str(s.data.get("commit") or "unknown")
-        state = staleness(root, commit, list(s.data.get("paths_measured") or []))
+        state = staleness(root, commit, _paths(s, attrs))
         state = state.split(":")[0].replace("**", "")
         if s.data.get("uncommitted_changes"):
             state += ", uncommitted changes"
