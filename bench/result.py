@@ -86,6 +86,10 @@ class Result:
         self.started = datetime.now(UTC)
         self._t0 = time.monotonic()
         self.load_before = _load()
+        # the code measured is what was checked out when the run began
+        self.commit = _git("rev-parse", "HEAD") or "unknown"
+        dirty = _git("status", "--porcelain", "--", *self.paths_measured)
+        self.uncommitted = sorted(line[3:] for line in (dirty or "").splitlines())
         self.figures: dict[str, dict[str, Any]] = {}
         self.tables: list[dict[str, Any]] = []
         self.notes: list[str] = []
@@ -127,11 +131,9 @@ class Result:
             self.tables += parse_markdown(tee.buf.getvalue())
 
     def as_dict(self) -> dict[str, Any]:
-        commit = _git("rev-parse", "HEAD") or "unknown"
-        dirty = _git("status", "--porcelain", "--", *self.paths_measured)
         return {
-            "schema": SCHEMA, "name": self.name, "command": self.command, "commit": commit,
-            "uncommitted_changes": sorted(line[3:] for line in (dirty or "").splitlines()),
+            "schema": SCHEMA, "name": self.name, "command": self.command, "commit": self.commit,
+            "uncommitted_changes": self.uncommitted,
             "date": self.started.strftime("%Y-%m-%dT%H:%M:%SZ"), "quick": self.quick,
             "machine": machine(), "load_before": self.load_before, "load_after": _load(),
             "wall_s": round(time.monotonic() - self._t0, 1),
