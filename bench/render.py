@@ -90,7 +90,8 @@ def load_results(results_dir: Path) -> tuple[dict[str, Stored], list[Stored], li
         old = newest.get(name)
         if old is None or (_date(stored), path.name) > (_date(old), old.path.name):
             newest[name] = stored
-    return newest, every, raw
+    stems = {s.path.stem for s in every}
+    return newest, every, [p for p in raw if p.stem not in stems]
 
 
 def _date(s: Stored) -> str:
@@ -263,10 +264,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("page", type=Path)
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 if out of date")
+    ap.add_argument("--root", type=Path, default=ROOT,
+                    help="the repository whose bench/results to render (default: this one)")
     args = ap.parse_args(argv)
     try:
         current = args.page.read_text(encoding="utf-8")
-        wanted = render(current, ROOT, args.page.resolve().parent)
+        wanted = render(current, args.root.resolve(), args.page.resolve().parent)
     except (OSError, RenderError) as exc:
         print(f"render: {exc}", file=sys.stderr)
         return 2

@@ -81,8 +81,7 @@ class Result:
         self.paths_measured = sorted(set(paths_measured) | set(own))
         self.quick = quick
         args = sys.argv[1:] if argv is None else argv
-        self.command = shlex.join(["python", *own[:1], *args]) if own else shlex.join(
-            ["python", *sys.argv])
+        self.command = shlex.join(["python", *(own or sys.argv[:1]), *args])
         self.started = datetime.now(UTC)
         self._t0 = time.monotonic()
         self.load_before = _load()
