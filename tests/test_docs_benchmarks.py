@@ -176,10 +176,11 @@ def test_the_newest_result_wins_and_quick_results_never_count(tmp_path: Path) ->
     newer = {**data, "date": "2026-12-02T10:00:00Z", "tables": [
         {"title": "", "columns": ["what", "value"], "rows": [["rate", "50 MB/s"]]}]}
     (results / "2026-12-02-demo.json").write_text(json.dumps(newer))
-    quick = {**newer, "date": "2026-12-03T10:00:00Z", "quick": True}
+    quick = {**newer, "date": "2026-12-03T10:00:00Z", "quick": True, "tables": [
+        {"title": "", "columns": ["what", "value"], "rows": [["rate", "99 MB/s"]]}]}
     (results / "2026-12-03-demo.json").write_text(json.dumps(quick))
     page = _render(root)
-    assert "| rate | 50 MB/s |" in page and "42.5 MB/s" not in page
+    assert "| rate | 50 MB/s |" in page and "42.5 MB/s" not in page and "99 MB/s" not in page
 
 
 @needs_git
