@@ -92,6 +92,8 @@ class Result:
         self.figures: dict[str, dict[str, Any]] = {}
         self.tables: list[dict[str, Any]] = []
         self.notes: list[str] = []
+        self.data: dict[str, Any] = {}
+        """Everything else the benchmark measured (per-run detail the page does not show)."""
 
     def figure(self, key: str, value: float | int | str, unit: str = "",
                label: str = "") -> float | int | str:
@@ -137,7 +139,7 @@ class Result:
             "machine": machine(), "load_before": self.load_before, "load_after": _load(),
             "wall_s": round(time.monotonic() - self._t0, 1),
             "paths_measured": self.paths_measured, "figures": self.figures,
-            "tables": self.tables, "notes": self.notes,
+            "tables": self.tables, "notes": self.notes, "data": self.data,
         }
 
     def write(self, directory: Path | None = None) -> Path | None:
