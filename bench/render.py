@@ -186,6 +186,9 @@ def render_block(name: str, attrs: dict[str, str], newest: dict[str, Stored], ro
                   "not rendered here."]
     for t in stored.data.get("tables", []):
         lines.append("")
+        if "text" in t:  # printed as plain text, shown as printed
+            lines += ["```text", str(t["text"]), "```"]
+            continue
         if t.get("title"):
             lines += [f"**{t['title']}**", ""]
         if t.get("intro"):

@@ -129,7 +129,11 @@ class Result:
             yield
         finally:
             sys.stdout = tee.out
-            self.tables += parse_markdown(tee.buf.getvalue())
+            printed = tee.buf.getvalue()
+            tables = parse_markdown(printed)
+            # a benchmark that prints plain text is kept as printed (the page shows it as such)
+            self.tables += tables or ([{"title": "", "text": printed.strip("\n")}]
+                                      if printed.strip() else [])
 
     def as_dict(self) -> dict[str, Any]:
         return {

@@ -229,6 +229,19 @@ def test_a_result_records_what_the_benchmark_printed(tmp_path: Path,
     assert "| ours | 1,128 |" in capsys.readouterr().out  # still printed
 
 
+def test_plain_text_output_is_kept_as_printed(tmp_path: Path) -> None:
+    res = result_mod.Result("demo", [])
+    with res.capture():
+        print("attitude\n  inclination RMSE      0.506 deg")
+    path = res.write(tmp_path)
+    assert path is not None
+    table = json.loads(path.read_text())["tables"]
+    assert table == [{"title": "", "text": "attitude\n  inclination RMSE      0.506 deg"}]
+    page = render_mod.render_block("demo", {}, {"demo": render_mod.Stored(path, "demo", {
+        "schema": 1, "tables": table})}, tmp_path, tmp_path)
+    assert "```text\nattitude\n  inclination RMSE      0.506 deg\n```" in page
+
+
 def test_a_quick_run_writes_no_result_unless_asked(tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("BENCH_RESULTS_DIR", raising=False)
