@@ -142,7 +142,7 @@ def _load_text(data: dict[str, Any]) -> str:
 
 def _cores(data: dict[str, Any]) -> str:
     m = data.get("machine") or {}
-    n = m.get("cpus") or m.get("cpu_count") or m.get("nproc")
+    n = m.get("cpus") or m.get("cpu_count") or m.get("nproc") or data.get("cpus")
     return f"{n} cores, " if n else ""
 
 
