@@ -88,7 +88,8 @@ def fly(tmp: Path, duration_s: float, speed: float | None) -> tuple[dict, dict[s
     # ... while every thread still runs: on a loaded machine shutdown spans several samples,
     # and a thread that has ended is missing from the last snapshots
     n_threads = [len(t) for t in threads]
-    i_last = max(i for i in range(i_first, len(samples)) if n_threads[i] == max(n_threads))
+    full = max(n_threads[i_first:])
+    i_last = max(i for i in range(i_first, len(samples)) if n_threads[i] == full)
     i_last = max(i_first + 1, min(i_last, len(samples) - 2)) if len(samples) > 2 else i_last
     first, last = samples[i_first], samples[i_last]
     span = last[0] - first[0]
