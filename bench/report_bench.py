@@ -82,8 +82,14 @@ class _Log:
 def _producer_log(module: str, cls: str) -> _Log:
     import importlib
 
+    from companion.vehicle import VEHICLE
+
     log = _Log()
-    getattr(importlib.import_module(module), cls)(*(("loop://",) if "drivers" in module else ())).define_logs(log)
+    make = getattr(importlib.import_module(module), cls)
+    # each thread is built for its row of the vehicle's table; a driver also takes a port
+    row = "estimator" if "estimation" in module else module.rsplit(".", 1)[1]
+    port = ("loop://",) if "drivers" in module else ()
+    make(*port, task=VEHICLE[row].task).define_logs(log)
     return log
 
 
