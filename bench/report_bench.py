@@ -137,7 +137,7 @@ def synthesise_flight(root: Path, minutes: float, seed: int = 1) -> Path:
         gps.block(1, ns(tk + 0.05), (43200.0 + tk, lat_of(s["north"][k] + noise[k, 0]),
                                      lon_of(s["east"][k] + noise[k, 1]), ALT0 - s["down"][k] + noise[k, 2],
                                      1, 9, 0.9, 1.6, 1.3, float("nan"), speed, math.degrees(s["yaw"][k]) % 360,
-                                     s["vn"][k], s["ve"][k], 0.05, 1.4, 1.1, 12.0))
+                                     s["vn"][k], s["ve"][k], 0.05, 1.4, 1.1, 12.0, float("nan")))
         gps.array(2, ns(tk + 0.05), b"$GPGGA," + bytes(150))
     gps.marker(END, ns(dur))
 
