@@ -129,7 +129,9 @@ class Result:
             yield
         finally:
             sys.stdout = tee.out
-            printed = tee.buf.getvalue()
+            printed, found = split_json_lines(tee.buf.getvalue())
+            if found:
+                self.data["printed_json"] = found
             tables = parse_markdown(printed)
             # a benchmark that prints plain text is kept as printed (the page shows it as such)
             self.tables += tables or ([{"title": "", "text": printed.strip("\n")}]
@@ -252,3 +254,19 @@ def run_captured(name: str, paths_measured: list[str], main: Callable[[], int | 
     if code == 0:
         res.write()
     return code
+
+
+def split_json_lines(text: str) -> tuple[str, list[Any]]:
+    """(the text without the lines that are whole JSON documents, those documents): a
+    benchmark that prints its figures as JSON for machines keeps them as data, not as prose."""
+    kept: list[str] = []
+    found: list[Any] = []
+    for line in text.splitlines():
+        if line.lstrip()[:1] in ("[", "{"):
+            try:
+                found.append(json.loads(line))
+                continue
+            except json.JSONDecodeError:
+                pass
+        kept.append(line)
+    return "\n".join(kept), found

@@ -215,6 +215,7 @@ def test_a_result_records_what_the_benchmark_printed(tmp_path: Path,
     res = result_mod.Result("demo", ["companion/logs"], argv=["--records", "10"])
     with res.capture():
         print("## Reader\n\nsome words\n\n| reader | MB/s |\n|---|---|\n| ours | 1,128 |\n\nafter")
+        print('[{"k": 1, "held": true}]')  # figures printed as JSON for machines: data
     res.figure("read_mb_s", 1128.0, "MB/s")
     path = res.write(tmp_path)
     assert path is not None and path.name.endswith("-demo.json")
@@ -225,6 +226,7 @@ def test_a_result_records_what_the_benchmark_printed(tmp_path: Path,
     assert data["figures"]["read_mb_s"] == {"value": 1128.0, "unit": "MB/s", "label": "read_mb_s"}
     assert data["tables"] == [{"title": "Reader", "intro": "some words", "columns":
                                ["reader", "MB/s"], "rows": [["ours", "1,128"]], "note": "after"}]
+    assert data["data"] == {"printed_json": [[{"k": 1, "held": True}]]}
     assert "| ours | 1,128 |" in capsys.readouterr().out  # still printed
 
 
