@@ -59,6 +59,7 @@ bench-soak: $(STAMP)
 
 docs: $(STAMP)
 	$(BIN)/python -m companion.docgen docs/parameters.md
+	$(BIN)/python bench/render.py docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

@@ -49,6 +49,7 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.result import Result  # noqa: E402
 from companion.core.geo import NedFrame  # noqa: E402
 from companion.estimation.params import estimator_param_defaults  # noqa: E402
 from companion.estimation.quat import (  # noqa: E402
@@ -120,18 +121,6 @@ flight.RuntimeOptions = functools.partial(flight.RuntimeOptions, estimator=False
 sys.exit(main(sys.argv[1:]))
 """
 """``companion sim`` with the estimator and the control law off (the CPU baseline)."""
-
-
-def _load() -> list[float]:
-    return [round(v, 2) for v in os.getloadavg()]
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).resolve().parents[1]).stdout.strip()
-    except OSError:
-        return "unknown"
 
 
 # ------------------------------------------------------------------------------ flying
@@ -551,7 +540,7 @@ def main() -> int:
         print(f"autopilot_bench: {exc}", file=sys.stderr)
         return 2
     n = args.flights or (1 if args.quick else 3)
-    load_before = _load()
+    res = Result("autopilot-estimation", ["companion", "gcs_bridge"], quick=args.quick)
     t0 = time.monotonic()
     flights: dict[str, list[dict[str, Any]]] = {s: [] for s in SETTINGS}
     baselines: list[dict[str, Any]] = []
@@ -576,11 +565,12 @@ def main() -> int:
         "command": "python bench/autopilot_bench.py" + (" --quick" if args.quick else "")
                    + (f" --flights {args.flights}" if args.flights else "")
                    + (f" --duration {args.duration:g}" if args.duration != DURATION_S else ""),
-        "commit": _commit(),
+        "commit": res.commit,
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "machine": {"nproc": len(os.sched_getaffinity(0)), "cpu_count": os.cpu_count(),
                     "python": platform.python_version(), "platform": platform.platform(),
-                    "load_before": load_before, "load_after": _load()},
+                    "load_before": res.load_before,
+                    "load_after": [round(v, 2) for v in os.getloadavg()]},
         "wall_s": wall_s,
         "speed": SPEED, "duration_s": args.duration, "flights_per_setting": n,
         "sitl_home": SITL_HOME,
@@ -597,21 +587,25 @@ def main() -> int:
                     / _mean(baselines, "cpu", "runtime_ms_per_sim_s"),
                 "added_ms_per_sim_s": full_ms - base_ms},
     }
-    text = report(result)
-    print(text)
+    with res.capture():
+        text = report(result)
+        print(text)
     if args.md is not None:
         header = (f"<!-- ARDUPILOT_SITL=<arduplane> {result['command']} (commit "
                   f"{result['commit'][:7]}; {result['machine']['nproc']}-core machine shared "
                   "with other work) -->\n\n")
         args.md.write_text(header + text + "\n", encoding="utf-8")
+    # the CPU part names its flights (they are in "estimation" already)
+    saved = {**result, "cpu": {**result["cpu"], **{
+        k: [f["label"] for f in result["cpu"][k]] for k in ("full", "mems")}}}
+    # a flight's directory was a temporary one: its name only, no machine's path
+    text_json = json.dumps(saved, indent=1, default=float)
+    text_json = re.sub(r'"flight_dir": "[^"]*/([^"/]+)"', r'"flight_dir": "\1"', text_json)
     if args.json is not None:
-        # the CPU part names its flights (they are in "estimation" already)
-        saved = {**result, "cpu": {**result["cpu"], **{
-            k: [f["label"] for f in result["cpu"][k]] for k in ("full", "mems")}}}
-        # a flight's directory was a temporary one: its name only, no machine's path
-        text_json = json.dumps(saved, indent=1, default=float)
-        text_json = re.sub(r'"flight_dir": "[^"]*/([^"/]+)"', r'"flight_dir": "\1"', text_json)
         args.json.write_text(text_json + "\n", encoding="utf-8")
+    res.data = {k: v for k, v in json.loads(text_json).items()
+                if k not in ("command", "commit", "date")}
+    res.write()
     return 0
 
 

@@ -632,4 +632,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("faults", ["companion", "gcs_bridge", "legacy_protocol", "bench/faultfs.py", "bench/faults_disk.py"], main))

@@ -494,4 +494,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("gcs_transfer", ["gcs_bridge", "companion/logs", "bench/serial_relay.py"], main))

@@ -12,7 +12,6 @@ records/s against the same DFReader read rate. Sizes: binary against CSV for the
 from __future__ import annotations
 
 import argparse
-import os
 import struct
 import sys
 import tempfile
@@ -23,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.result import Result  # noqa: E402
 from companion.logs.convert import convert_file  # noqa: E402
 from companion.logs.formats import parse_format  # noqa: E402
 from companion.logs.reader import read_log  # noqa: E402
@@ -155,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     n = 100_000 if args.quick else args.records
     repeat = 1 if args.quick else 3
+    res = Result("logs", ["companion/logs"], quick=args.quick)
     with tempfile.TemporaryDirectory(prefix="logs-bench-") as d:
         tmp = Path(d)
         ours, df = tmp / "bench.bin", tmp / "bench_df.bin"
@@ -172,33 +173,27 @@ def main(argv: list[str] | None = None) -> int:
 
         size_ours, size_df = ours.stat().st_size, df.stat().st_size
         r_read, r_df, r_csv = n_ours / t_read, n / t_df, n_ours / t_csv
-        print(
-            f"## Flight-log benchmark: {n:,} records, 5 formats (python {sys.version.split()[0]}, {os.cpu_count()} CPUs)"
-        )
-        print()
-        print("| measure | value |")
-        print("|---|---|")
-        print(
-            f"| writer: records written/s (1 producer, default queue) | {w['rate']:,.0f} ({w['dropped']:,} dropped) |"
-        )
-        print(
-            f"| writer: log() cost median / p99 | {w['median_us']:.2f} us / {w['p99_us']:.2f} us |"
-        )
-        print(
-            f"| reader: read_log records/s | {r_read:,.0f} ({size_ours / t_read / 1e6:,.1f} MB/s) |"
-        )
-        print(
-            f"| pymavlink DFReader_binary records/s (index + recv_msg) | {r_df:,.0f} ({size_df / t_df / 1e6:,.1f} MB/s) |"
-        )
-        print(f"| reader speed-up vs DFReader | {r_read / r_df:,.1f}x |")
-        print(
-            f"| CSV conversion records/s | {r_csv:,.0f} ({csv_bytes / t_csv / 1e6:,.1f} MB/s of CSV) |"
-        )
-        print(f"| CSV conversion vs DFReader read rate | {r_csv / r_df:,.1f}x |")
-        print(
-            f"| size: binary / CSV / DataFlash | {size_ours / 1e6:,.1f} MB / {csv_bytes / 1e6:,.1f} MB / {size_df / 1e6:,.1f} MB |"
-        )
-        print(f"| binary saves vs CSV | {100 * (1 - size_ours / csv_bytes):.0f}% |")
+        mb_read, mb_df = size_ours / t_read / 1e6, size_df / t_df / 1e6
+        res.figure("read_mb_s", round(mb_read, 1), "MB/s", "read_log")
+        res.figure("read_vs_dfreader", round(r_read / r_df, 1), "x", "read_log / DFReader")
+        res.table(
+            f"{n:,} records, 5 formats", ["measure", "value"], [
+                ["writer: records written/s (1 producer, default queue)",
+                 f"{w['rate']:,.0f} ({w['dropped']:,} dropped)"],
+                ["writer: log() cost median / p99",
+                 f"{w['median_us']:.2f} us / {w['p99_us']:.2f} us"],
+                ["reader: read_log records/s", f"{r_read:,.0f} ({mb_read:,.1f} MB/s)"],
+                ["pymavlink DFReader_binary records/s (index + recv_msg)",
+                 f"{r_df:,.0f} ({mb_df:,.1f} MB/s)"],
+                ["reader speed-up vs DFReader", f"{r_read / r_df:,.1f}x"],
+                ["CSV conversion records/s",
+                 f"{r_csv:,.0f} ({csv_bytes / t_csv / 1e6:,.1f} MB/s of CSV)"],
+                ["CSV conversion vs DFReader read rate", f"{r_csv / r_df:,.1f}x"],
+                ["size: binary / CSV / DataFlash",
+                 f"{size_ours / 1e6:,.1f} MB / {csv_bytes / 1e6:,.1f} MB / {size_df / 1e6:,.1f} MB"],
+                ["binary saves vs CSV", f"{100 * (1 - size_ours / csv_bytes):.0f}%"],
+            ])
+    res.write()
     return 0
 
 

@@ -42,6 +42,9 @@ from gcs_bridge.params import codec as param_codec
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support
 from support.synthetic_vehicle import MiniGcs, SyntheticVehicle  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.result import Result, split_row  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -419,18 +422,17 @@ def main() -> int:
                             float(args.serve_direct[2]))
     logging.basicConfig(level=logging.WARNING)
     quick = args.quick
-    print("## MAVLink bridge\n")
-    print(f"machine: {os.cpu_count()} cores, Python {sys.version.split()[0]}\n")
-    print("| what | params | time | notes |\n|---|---|---|---|")
-    for row in bench_param_list(20 if quick else 270, 1 if quick else 5):
-        print(row, flush=True)
-    print("\n| telemetry latency, IMU frame on the serial port -> HIGHRES_IMU at the GCS | samples | "
-          "result | p99 vs the direct forwarder |\n|---|---|---|---|")
-    for row in bench_latency(3.0 if quick else 20.0):
-        print(row, flush=True)
-    print("\n| bridge CPU | sent | CPU | baseline |\n|---|---|---|---|")
-    for row in bench_cpu(3.0 if quick else 20.0):
-        print(row, flush=True)
+    res = Result("mavlink", ["gcs_bridge", "companion/runtime.py", "companion/drivers"],
+                 quick=quick)
+    print("## MAVLink bridge\n", flush=True)
+    res.table("Parameters", ["what", "params", "time", "notes"],
+              [split_row(r) for r in bench_param_list(20 if quick else 270, 1 if quick else 5)])
+    res.table("Telemetry latency, IMU frame on the serial port -> HIGHRES_IMU at the GCS",
+              ["path", "samples", "result", "p99 vs the direct forwarder"],
+              [split_row(r) for r in bench_latency(3.0 if quick else 20.0)])
+    res.table("Bridge CPU", ["bridge", "sent", "CPU", "baseline"],
+              [split_row(r) for r in bench_cpu(3.0 if quick else 20.0)])
+    res.write()
     return 0
 
 

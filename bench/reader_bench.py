@@ -23,7 +23,6 @@ each.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import subprocess
 import sys
@@ -36,6 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.result import Cell, Result  # noqa: E402
 from companion.logs.reader import read_log  # noqa: E402
 from companion.logs.records import ARRAY, ARRAY_ALT, DATA, END  # noqa: E402
 
@@ -161,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.quick:
         args.minutes, args.repeat = 2.0, 3
+    res = Result("reader", ["companion/logs", "companion/cli.py", "companion/__main__.py"],
+                 quick=args.quick)
     with tempfile.TemporaryDirectory(prefix="reader-bench-") as tmp:
         root = Path(tmp)
         src = args.flight or fly(root, 30.0)
@@ -169,22 +171,20 @@ def main(argv: list[str] | None = None) -> int:
         size, t_np, t_rd, t_long, records = bench_reader(flight, args.repeat)
         startup = bench_startup(src, args.repeat)  # the short flight: start-up, not reading
     mb = size / 1e6
-    print(f"\n## Log reader: a {args.minutes:g}-minute flight ({mb:.1f} MB in "
-          f"{n_logs} logs, {records} records; best of "
-          f"{args.repeat})\n")
-    print("| reader | s | MB/s | vs numpy.fromfile |")
-    print("|---|---|---|---|")
-    print(f"| numpy.fromfile (baseline) | {t_np:.4f} | {mb / t_np:,.0f} | 1 |")
+    res.figure("read_log_mb_s", round(mb / t_rd), "MB/s", "read_log, every stream decoded")
+    rows: list[list[Cell]] = [["numpy.fromfile (baseline)", round(t_np, 4), round(mb / t_np), "1"]]
     for label, t in (("read_log, every stream decoded", t_rd),
                      ("read_log + Byte Arrays' long tables (`Stream.data`)", t_long)):
-        print(f"| {label} | {t:.4f} | {mb / t:,.0f} | {t_np / t:.3f} ({t / t_np:.1f}x slower) |")
+        rows.append([label, round(t, 4), round(mb / t),
+                     f"{t_np / t:.3f} ({t / t_np:.1f}x slower)"])
+    res.table(f"Log reader: a {args.minutes:g}-minute flight ({mb:.1f} MB in {n_logs} logs, "
+              f"{records:,} records; best of {args.repeat})",
+              ["reader", "s", "MB/s", "vs numpy.fromfile"], rows)
     base = startup[0][1]
-    print(f"\n## Start-up of the log tools (median of {args.repeat}, wall time)\n")
-    print("| command | s | over python -c pass |")
-    print("|---|---|---|")
-    for label, s in startup:
-        print(f"| {label} | {s:.3f} | {s - base:+.3f} |")
-    print(f"\n(load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs)")
+    res.table(f"Start-up of the log tools (median of {args.repeat}, wall time)",
+              ["command", "s", "over python -c pass"],
+              [[label, f"{s:.3f}", f"{s - base:+.3f}"] for label, s in startup])
+    res.write()
     return 0
 
 

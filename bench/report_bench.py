@@ -82,8 +82,14 @@ class _Log:
 def _producer_log(module: str, cls: str) -> _Log:
     import importlib
 
+    from companion.vehicle import VEHICLE
+
     log = _Log()
-    getattr(importlib.import_module(module), cls)(*(("loop://",) if "drivers" in module else ())).define_logs(log)
+    make = getattr(importlib.import_module(module), cls)
+    # each thread is built for its row of the vehicle's table; a driver also takes a port
+    row = "estimator" if "estimation" in module else module.rsplit(".", 1)[1]
+    port = ("loop://",) if "drivers" in module else ()
+    make(*port, task=VEHICLE[row].task).define_logs(log)
     return log
 
 
@@ -131,7 +137,7 @@ def synthesise_flight(root: Path, minutes: float, seed: int = 1) -> Path:
         gps.block(1, ns(tk + 0.05), (43200.0 + tk, lat_of(s["north"][k] + noise[k, 0]),
                                      lon_of(s["east"][k] + noise[k, 1]), ALT0 - s["down"][k] + noise[k, 2],
                                      1, 9, 0.9, 1.6, 1.3, float("nan"), speed, math.degrees(s["yaw"][k]) % 360,
-                                     s["vn"][k], s["ve"][k], 0.05, 1.4, 1.1, 12.0))
+                                     s["vn"][k], s["ve"][k], 0.05, 1.4, 1.1, 12.0, float("nan")))
         gps.array(2, ns(tk + 0.05), b"$GPGGA," + bytes(150))
     gps.marker(END, ns(dur))
 
@@ -379,4 +385,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("report", ["companion/report", "companion/liveview", "companion/logs"], main))

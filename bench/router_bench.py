@@ -63,7 +63,6 @@ import json
 import multiprocessing as mp
 import os
 import pickle
-import platform
 import select
 import signal
 import socket
@@ -86,6 +85,7 @@ sys.path.insert(0, str(ROOT))
 from pymavlink.dialects.v20 import ardupilotmega as apm  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
+from bench.result import Result, machine  # noqa: E402
 from gcs_bridge.framing import FrameSplitter  # noqa: E402
 from gcs_bridge.msg_targets import field_offsets  # noqa: E402
 
@@ -649,24 +649,6 @@ def ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 2) if a is not None and b else None
 
 
-def machine() -> dict[str, Any]:
-    model = ""
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            model = line.split(":", 1)[1].strip()
-            break
-    return {"cpus": os.cpu_count(), "cpu": model, "kernel": platform.release(),
-            "python": platform.python_version()}
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
-                              text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
 def report(results: dict[str, Any]) -> str:
     rows = results["routers"]
     lines = ["| router | phase | frames/s written | sent | lost | p50 us | p99 us | max us | "
@@ -719,6 +701,7 @@ def main() -> int:
         routers.remove("mavproxy")
     for n in notes:
         print(n, file=sys.stderr)
+    res = Result("router", ["companion", "gcs_bridge"], quick=args.quick)
     rec = load_recording()
     flight_rate = rec.total_bytes / (rec.span_ms / 1000.0)
     # enough frames for a warm-up of up to 31 s, both phases and the bursts
@@ -726,7 +709,7 @@ def main() -> int:
                    + bursts * BURST_FRAMES + 5000)
     frames = [make_frame(rec, i) for i in range(n_frames)]
     load0 = os.getloadavg()
-    started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    started = res.started.strftime("%Y-%m-%dT%H:%M:%SZ")
     out: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="router-bench-") as tmp:
         for name in routers:
@@ -750,7 +733,7 @@ def main() -> int:
                 for pname, p in by["ours"].get("phases", {}).items() if pname != "idle"}
     results = {
         "command": "python bench/router_bench.py " + " ".join(sys.argv[1:]),
-        "commit": git_commit(), "date": started, "machine": machine(),
+        "commit": res.commit, "date": started, "machine": machine(),
         "load_average_before": [round(x, 2) for x in load0],
         "load_average_after": [round(x, 2) for x in load1],
         "recording": {"file": str(RECORDING.relative_to(ROOT)), "frames": len(rec.frames),
@@ -763,8 +746,13 @@ def main() -> int:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     print(f"## Routing beside an autopilot, {started}, {os.cpu_count()} cores, load "
           f"{load0[0]:.2f} before, {load1[0]:.2f} after\n")
-    print(report(results))
-    return 0 if all(r.get("error") is None for r in out) else 1
+    with res.capture():
+        print(report(results))
+    ok = all(r.get("error") is None for r in out)
+    if ok:
+        res.data = {k: v for k, v in results.items() if k not in ("command", "commit", "date")}
+        res.write()
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":

@@ -59,6 +59,7 @@ def main(argv: list[str]) -> int:
               file=sys.stderr)
         return 2
     failures = 0
+    started = time.monotonic()
     for name, full_args in BENCHMARKS:
         if chosen and name not in chosen:
             continue
@@ -71,6 +72,8 @@ def main(argv: list[str]) -> int:
         print(f"\n({script.name}: exit {code}, {time.monotonic() - t0:.0f} s; after: {_load()})",
               flush=True)
         failures += code != 0
+    # the total is what README quotes for `make bench`
+    print(f"\n(run_all: {failures} failed, {time.monotonic() - started:.0f} s in all)", flush=True)
     return 1 if failures else 0
 
 

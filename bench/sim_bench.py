@@ -16,8 +16,10 @@ Usage: ``python bench/sim_bench.py [--duration 300] [--scenario mixed] [--aircra
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from companion.sim.aircraft import AIRCRAFT
 from companion.sim.flight import FlightModel
@@ -90,4 +92,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("sim", ["companion/sim"], main))

@@ -85,7 +85,12 @@ def fly(tmp: Path, duration_s: float, speed: float | None) -> tuple[dict, dict[s
     # steady state only: from a quarter into the flight (start-up imports and trim are over)
     # to the last sample before shutdown
     i_first = next(i for i, s in enumerate(samples) if s[0] >= samples[-1][0] * 0.25)
-    i_last = len(samples) - 2 if len(samples) > 2 else len(samples) - 1
+    # ... while every thread still runs: on a loaded machine shutdown spans several samples,
+    # and a thread that has ended is missing from the last snapshots
+    n_threads = [len(t) for t in threads]
+    full = max(n_threads[i_first:])
+    i_last = max(i for i in range(i_first, len(samples)) if n_threads[i] == full)
+    i_last = max(i_first + 1, min(i_last, len(samples) - 2)) if len(samples) > 2 else i_last
     first, last = samples[i_first], samples[i_last]
     span = last[0] - first[0]
     cpu: dict[str, Any] = {
@@ -154,4 +159,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("sitl", ["companion", "gcs_bridge", "legacy_protocol"], main))
