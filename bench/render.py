@@ -122,10 +122,13 @@ def staleness(root: Path, commit: str, paths: list[str]) -> str:
     log = _git(root, "log", "--format=%h", f"{commit}..HEAD", "--", *paths)
     if log is None:
         return "staleness unknown: git log failed"
-    changed = log.split()
-    if changed:
-        return (f"**stale**: {len(changed)} commit(s) since changed the measured code "
-                f"({', '.join(paths)}), newest `{changed[0]}`")
+    # Only whether, not how many or which: the page is rendered before the commit that
+    # changes the code, so the line must read the same before and after that commit (changes
+    # not yet committed count).
+    uncommitted = _git(root, "diff", "--name-only", "HEAD", "--", *paths)
+    if log.split() or uncommitted:
+        return (f"**stale**: the measured code ({', '.join(paths)}) changed after "
+                f"`{commit[:10]}`")
     return f"current: no commit since changed the measured code ({', '.join(paths)})"
 
 

@@ -145,4 +145,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    raise SystemExit(run_captured("replay", ["companion/estimation/replay", "companion/logs"],
+                                  main))

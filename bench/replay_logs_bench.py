@@ -148,4 +148,8 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("replay_logs", ["companion/estimation"],
+                          lambda: main(sys.argv[1:])))

@@ -77,7 +77,10 @@ class Result:
                  argv: list[str] | None = None) -> None:
         self.name = name
         script = Path(sys.argv[0]).resolve()
-        own = [str(script.relative_to(ROOT))] if script.is_relative_to(ROOT) else []
+        # the benchmark's own script is part of what it measures (not a runner such as
+        # pytest's, which may live in a virtualenv inside the checkout)
+        own = ([str(script.relative_to(ROOT))]
+               if script.is_relative_to(ROOT / "bench") else [])
         self.paths_measured = sorted(set(paths_measured) | set(own))
         self.quick = quick
         args = sys.argv[1:] if argv is None else argv

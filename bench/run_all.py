@@ -40,6 +40,7 @@ BENCHMARKS: list[tuple[str, list[str]]] = [
     ("wakeup", []),
     ("lockstep", []),
     ("real_imu", []),
+    ("replay", []),
     ("replay_logs", []),
 ]
 
