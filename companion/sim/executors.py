@@ -237,7 +237,7 @@ class RayExecutor:
         self.max_tries = max_tries
         if address and address != "auto":
             _reachable(address)
-        _bounded_init(ray, address)
+        self._release = _bounded_init(ray, address)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = jobs if jobs else max(1, cpus)
         from ray.util.queue import Queue
@@ -302,6 +302,7 @@ class RayExecutor:
             self._ray.shutdown()
         except Exception:  # noqa: BLE001 - shutting down a cluster link that already broke
             log.debug("ray.shutdown failed", exc_info=True)
+        self._release.set()
 
 
 def _again(job: FlightJob) -> FlightJob:
@@ -326,25 +327,32 @@ def _reachable(address: str) -> None:
                             f"({exc.strerror or exc})") from None
 
 
-def _bounded_init(ray: Any, address: str | None) -> None:
-    """ray.init in a thread, given up after RAY_INIT_TIMEOUT_S: never a hang."""
+def _bounded_init(ray: Any, address: str | None) -> threading.Event:
+    """ray.init in a thread, given up after RAY_INIT_TIMEOUT_S: never a hang. The thread stays
+    until the returned event is set: Ray ties the local cluster's processes to the life of the
+    thread that started them (PR_SET_PDEATHSIG), so it must outlive the campaign."""
     failure: list[BaseException] = []
+    ready, release = threading.Event(), threading.Event()
 
     def init() -> None:
         try:
-            extra = {} if address else {"include_dashboard": False}
+            # a local cluster stays on loopback: nothing of it reachable from the network
+            extra = {} if address else {"include_dashboard": False,
+                                        "_node_ip_address": "127.0.0.1"}
             ray.init(address=address or None, logging_level=logging.WARNING,
                      log_to_driver=False, **extra)
         except BaseException as exc:  # noqa: BLE001 - reported on the caller's thread
             failure.append(exc)
+        ready.set()
+        release.wait()
 
-    t = threading.Thread(target=init, name="ray-init", daemon=True)
-    t.start()
-    t.join(RAY_INIT_TIMEOUT_S)
-    if t.is_alive():
+    threading.Thread(target=init, name="ray-init", daemon=True).start()
+    if not ready.wait(RAY_INIT_TIMEOUT_S):
         raise ExecutorError(f"Ray did not start or connect within {RAY_INIT_TIMEOUT_S:.0f} s "
                             f"(address {address or 'local'})")
     if failure:
+        release.set()
         first = str(failure[0]).strip().splitlines() or [type(failure[0]).__name__]
         raise ExecutorError(f"Ray could not start or connect (address {address or 'local'}): "
                             f"{first[0][:200]}")
+    return release
