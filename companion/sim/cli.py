@@ -203,7 +203,12 @@ def _campaign(args: argparse.Namespace) -> int:
         if search is not None:
             from companion.sim.search import run_search
 
-            summary = run_search(search, out, executor, storage=args.search_storage)
+            progress = CampaignProgress(search.trials, 0)
+            try:
+                summary = run_search(search, out, executor, storage=args.search_storage,
+                                     events=progress.event)
+            finally:
+                progress.close()
             print(json.dumps(summary, indent=2) if args.json else
                   f"search: best {summary['metric']} = {summary['best_value']} with "
                   f"{summary['best_params']} after {summary['trials']} trials; "
@@ -219,8 +224,8 @@ def _campaign(args: argparse.Namespace) -> int:
         print(f"companion sim: campaign interrupted; run the same command again to fly the "
               f"rest ({out})", file=sys.stderr)
         return 130
-    except (CampaignError, ValueError, OSError) as exc:
-        print(f"companion sim: --campaign-dir {exc}", file=sys.stderr)
+    except (CampaignError, ValueError, OSError) as exc:  # the campaign dir, the study's database
+        print(f"companion sim: {exc}", file=sys.stderr)
         return 2
     finally:
         executor.close()
