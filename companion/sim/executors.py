@@ -13,6 +13,7 @@ with its node, or a pool killed with its driver, leaves no orphan flight behind.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import logging
@@ -20,6 +21,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -237,7 +239,8 @@ class RayExecutor:
         self.max_tries = max_tries
         if address and address != "auto":
             _reachable(address)
-        self._release = _bounded_init(ray, address)
+        with contextlib.redirect_stdout(sys.stderr):
+            self._release = _bounded_init(ray, address)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = jobs if jobs else max(1, cpus)
         from ray.util.queue import Queue
@@ -250,6 +253,12 @@ class RayExecutor:
         self._remote = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
 
     def run(self, jobs: list[FlightJob], events: Events) -> dict[int, dict[str, Any]]:
+        # Ray's driver prints what its cluster says (a raylet that died, ...) on stdout, where
+        # `--json` puts the campaign's result: to stderr with it
+        with contextlib.redirect_stdout(sys.stderr):
+            return self._run(jobs, events)
+
+    def _run(self, jobs: list[FlightJob], events: Events) -> dict[int, dict[str, Any]]:
         ray = self._ray
         from collections import deque
 

@@ -128,7 +128,9 @@ def run_search(search: SearchSpec, where: str, executor: Any, *, storage: str | 
     out.claim([{"search": search.path.name, **search.base}], "this search")
     url = storage or search.storage or _default_storage(out)
     study = optuna.create_study(study_name=STUDY_NAME, storage=url, load_if_exists=True,
-                                direction=search.direction,
+                                direction=(optuna.study.StudyDirection.MAXIMIZE
+                                           if search.direction == "maximize"
+                                           else optuna.study.StudyDirection.MINIMIZE),
                                 sampler=optuna.samplers.TPESampler(
                                     seed=search.seed, n_startup_trials=_startup(search.trials)))
     finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
