@@ -83,10 +83,15 @@ def test_a_bad_specification_is_refused_before_anything_flies(
 
 
 RESUME_SPEC = """
-duration_s = 5
+duration_s = 20
 scenario = "level"
-[grid]
-seed = [1, 2, 3]
+[[flight]]
+seed = 1
+duration_s = 4
+[[flight]]
+seed = 2
+[[flight]]
+seed = 3
 """
 
 
@@ -136,11 +141,15 @@ def test_a_campaign_killed_with_sigkill_resumes_to_the_same_dataset(tmp_path: Pa
     for line in proc.stderr:  # bounded: the flights end, and with them the output
         if line.startswith("[1/3]"):
             break
+    deadline = time.monotonic() + 30
+    while not _flight_processes(killed) and time.monotonic() < deadline:
+        time.sleep(0.05)  # the second flight (seconds long) is starting
+    assert _flight_processes(killed), "the second flight never started"
     proc.kill()  # SIGKILL: no handler runs, campaign.json is not written
     proc.wait(timeout=30)
-    deadline = time.monotonic() + 10
+    deadline = time.monotonic() + 1.0
     while _flight_processes(killed) and time.monotonic() < deadline:
-        time.sleep(0.1)  # the flight under way dies with its driver (PR_SET_PDEATHSIG)
+        time.sleep(0.05)  # the flight under way dies with its driver (PR_SET_PDEATHSIG)
     assert _flight_processes(killed) == []
     markers = sorted(p.name for p in (killed / "runs").glob("*.json"))
     assert 1 <= len(markers) < 3 and not (killed / "campaign.json").exists()
