@@ -267,3 +267,26 @@ def test_a_bad_search_is_refused_before_anything_flies(
     proc = campaign(tmp_path, "duration_s = 5\n" + table, "--search")
     assert proc.returncode == 2 and message in proc.stderr and "spec.toml" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_a_full_output_disk_records_each_flight_failed_and_ends_in_one_line(
+        tmp_path: Path) -> None:
+    spec = tmp_path / "spec.toml"
+    spec.write_text("duration_s = 5\nscenario = 'level'\n[grid]\nseed = [1, 2]\n",
+                    encoding="utf-8")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    # a 150 kB file system of its own (a private mount namespace): the state fits, a flight not
+    script = ('mount -t tmpfs -o size=150k tmpfs "$0" && exec "$1" -m companion sim --campaign '
+              '"$2" --campaign-dir "$0/out" --jobs 1')
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True, timeout=30)
+    if probe.returncode != 0:
+        pytest.skip("needs a private mount namespace (unshare -m) for a small file system")
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", script, str(disk), sys.executable,
+                           str(spec)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert lines[-1].startswith(f"companion sim: --campaign-dir {disk}/out: ")
+    assert "No space left on device" in lines[-1]
+    failed = [line for line in lines if "FAILED (output" in line]
+    assert len(failed) == 2 and all("No space left on device" in line for line in failed)

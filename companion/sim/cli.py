@@ -224,8 +224,11 @@ def _campaign(args: argparse.Namespace) -> int:
         print(f"companion sim: campaign interrupted; run the same command again to fly the "
               f"rest ({out})", file=sys.stderr)
         return 130
-    except (CampaignError, ValueError, OSError) as exc:  # the campaign dir, the study's database
+    except (CampaignError, ValueError) as exc:  # the campaign dir, the study's database
         print(f"companion sim: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the output cannot be written (a full disk, no permission)
+        print(f"companion sim: --campaign-dir {out}: {exc}", file=sys.stderr)
         return 2
     finally:
         executor.close()

@@ -82,6 +82,7 @@ def fly(job: FlightJob, node: str, on_spawn: Callable[[subprocess.Popen[str]], N
     params = job.settings.get("params") or {}
     params_text = "".join(f"{name} {value}\n" for name, value in params.items())
     scratch = Path(tempfile.mkdtemp(prefix=f"campaign-{job.name}-"))
+    log_dir = scratch / "flights"
     try:
         if local is not None:  # the command names the campaign's own files: re-flown by hand
             params_file = local / "params" / f"{job.name}.parm"
@@ -89,7 +90,6 @@ def fly(job: FlightJob, node: str, on_spawn: Callable[[subprocess.Popen[str]], N
             shutil.rmtree(log_dir, ignore_errors=True)
         else:
             params_file = scratch / f"{job.name}.parm"
-            log_dir = scratch / "flights"
         out.write_text(f"params/{job.name}.parm", params_text)
         if local is None:
             params_file.write_text(params_text, encoding="utf-8")
@@ -124,14 +124,14 @@ def fly(job: FlightJob, node: str, on_spawn: Callable[[subprocess.Popen[str]], N
             record["flight_dir"] = _place(out, Path(flown), job.name)
         else:
             record["flight_dir"] = None
-        shutil.rmtree(log_dir, ignore_errors=True)
         out.write_marker(job.name, record)
         return record
     except OSError as exc:  # the output cannot be written (a full disk, no permission)
         return {"command": [], "node": node, "tries": job.attempt, "exit_code": None,
                 "restarts": 0, "wall_s": None, "flight_dir": None,
                 "error": f"output {job.out_uri}: {exc.strerror or exc}"}
-    finally:
+    finally:  # what is left of a flight not placed (a full disk) is not kept
+        shutil.rmtree(log_dir, ignore_errors=True)
         shutil.rmtree(scratch, ignore_errors=True)
 
 
