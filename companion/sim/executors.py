@@ -345,9 +345,11 @@ def _bounded_init(ray: Any, address: str | None) -> threading.Event:
 
     def init() -> None:
         try:
-            # a local cluster stays on loopback: nothing of it reachable from the network
-            extra = {} if address else {"include_dashboard": False,
-                                        "_node_ip_address": "127.0.0.1"}
+            # a local cluster stays on loopback: nothing of it reachable from the network;
+            # and a cluster on loopback is found by this driver on loopback too
+            extra: dict[str, Any] = {} if address else {"include_dashboard": False}
+            if not address or address.rpartition(":")[0] in ("127.0.0.1", "localhost"):
+                extra["_node_ip_address"] = "127.0.0.1"
             ray.init(address=address or None, logging_level=logging.WARNING,
                      log_to_driver=False, **extra)
         except BaseException as exc:  # noqa: BLE001 - reported on the caller's thread
