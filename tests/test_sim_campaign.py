@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -290,3 +291,30 @@ def test_a_full_output_disk_records_each_flight_failed_and_ends_in_one_line(
     assert "No space left on device" in lines[-1]
     failed = [line for line in lines if "FAILED (output" in line]
     assert len(failed) == 2 and all("No space left on device" in line for line in failed)
+
+
+def test_ctrl_c_stops_the_flights_under_way_and_says_how_to_go_on(tmp_path: Path) -> None:
+    spec = tmp_path / "spec.toml"
+    spec.write_text(RESUME_SPEC, encoding="utf-8")
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "companion", "sim", "--campaign", str(spec),
+                             "--campaign-dir", str(out), "--jobs", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if line.startswith("[1/3]"):
+            break
+    deadline = time.monotonic() + 30
+    while not _flight_processes(out) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _flight_processes(out), "the second flight never started"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == (
+        f"companion sim: campaign interrupted; run the same command again to fly the rest "
+        f"({out})")
+    assert _flight_processes(out) == []
+    saved = json.loads((out / "campaign.json").read_text())
+    assert saved["interrupted"] and saved["ok"] == 1
+    assert sorted(p.name for p in (out / "runs").glob("*.json")) == ["0001.json"]

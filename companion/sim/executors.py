@@ -62,7 +62,8 @@ class FlightJob:
 
 
 Events = Callable[[str, FlightJob, dict[str, Any]], None]
-"""(event, job, details): "start" (details: node), "retry" (reason), "end" (the record)."""
+"""(event, job, details): "start" (details: node), "retry" (reason), "end" (the record);
+and from run_campaign, "recorded" (the record of a flight an earlier run flew)."""
 
 
 def _die_with_parent() -> None:

@@ -59,6 +59,14 @@ class CampaignProgress:
 
     def event(self, kind: str, job: Any, details: dict[str, Any]) -> None:
         with self._lock:
+            if kind == "recorded":  # flown by an earlier run of the campaign
+                if details.get("exit_code") == 0:
+                    self.done += 1
+                else:
+                    self.failed += 1
+                if self._bar is not None:
+                    self._bar.update(self._task, completed=self.done + self.failed)
+                return
             if kind == "start":
                 self.running[job.index] = str(details.get("node"))
                 line = f"flight {job.index} started on node {details.get('node')}"
