@@ -13,7 +13,6 @@ with its node, or a pool killed with its driver, leaves no orphan flight behind.
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import json
 import logging
@@ -240,8 +239,16 @@ class RayExecutor:
         self.max_tries = max_tries
         if address and address != "auto":
             _reachable(address)
-        with contextlib.redirect_stdout(sys.stderr):
+        # Ray's driver prints what its cluster says (a raylet that died, ...) on stdout, from
+        # its own threads, at any time until shutdown; `--json` puts the campaign's result on
+        # stdout: Ray's lines go to stderr while the executor lives
+        self._stdout = sys.stdout
+        sys.stdout = sys.stderr
+        try:
             self._release = _bounded_init(ray, address)
+        except BaseException:
+            sys.stdout = self._stdout
+            raise
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = jobs if jobs else max(1, cpus)
         from ray.util.queue import Queue
@@ -254,12 +261,6 @@ class RayExecutor:
         self._remote = ray.remote(num_cpus=1, max_retries=0)(_ray_task)
 
     def run(self, jobs: list[FlightJob], events: Events) -> dict[int, dict[str, Any]]:
-        # Ray's driver prints what its cluster says (a raylet that died, ...) on stdout, where
-        # `--json` puts the campaign's result: to stderr with it
-        with contextlib.redirect_stdout(sys.stderr):
-            return self._run(jobs, events)
-
-    def _run(self, jobs: list[FlightJob], events: Events) -> dict[int, dict[str, Any]]:
         ray = self._ray
         from collections import deque
 
@@ -313,6 +314,7 @@ class RayExecutor:
         except Exception:  # noqa: BLE001 - shutting down a cluster link that already broke
             log.debug("ray.shutdown failed", exc_info=True)
         self._release.set()
+        sys.stdout = self._stdout
 
 
 def _again(job: FlightJob) -> FlightJob:
