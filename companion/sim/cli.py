@@ -199,27 +199,24 @@ def _campaign(args: argparse.Namespace) -> int:
     except ExecutorError as exc:
         print(f"companion sim: {exc}", file=sys.stderr)
         return 2
+    found: dict[str, Any] | None = None
     try:
         if search is not None:
             from companion.sim.search import run_search
 
             progress = CampaignProgress(search.trials, 0)
             try:
-                summary = run_search(search, out, executor, storage=args.search_storage,
-                                     events=progress.event)
+                found = run_search(search, out, executor, storage=args.search_storage,
+                                   events=progress.event)
             finally:
                 progress.close()
-            print(json.dumps(summary, indent=2) if args.json else
-                  f"search: best {summary['metric']} = {summary['best_value']} with "
-                  f"{summary['best_params']} after {summary['trials']} trials; "
-                  f"{summary['best_parm']}")
-            return 0
-        progress = CampaignProgress(len(specs), 0)
-        try:
-            result = run_campaign(specs, out, executor, spec_path=args.campaign,
-                                  retry_failed=args.retry_failed, events=progress.event)
-        finally:
-            progress.close()
+        else:
+            progress = CampaignProgress(len(specs), 0)
+            try:
+                result = run_campaign(specs, out, executor, spec_path=args.campaign,
+                                      retry_failed=args.retry_failed, events=progress.event)
+            finally:
+                progress.close()
     except KeyboardInterrupt:
         print(f"companion sim: campaign interrupted; run the same command again to fly the "
               f"rest ({out})", file=sys.stderr)
@@ -231,7 +228,12 @@ def _campaign(args: argparse.Namespace) -> int:
         print(f"companion sim: --campaign-dir {out}: {exc}", file=sys.stderr)
         return 2
     finally:
-        executor.close()
+        executor.close()  # before printing: Ray's executor holds stdout for its own lines
+    if found is not None:
+        print(json.dumps(found, indent=2) if args.json else
+              f"search: best {found['metric']} = {found['best_value']} with "
+              f"{found['best_params']} after {found['trials']} trials; {found['best_parm']}")
+        return 0
     if args.json:
         print(json.dumps(result, indent=2))
     else:
