@@ -20,7 +20,7 @@ ifneq ($(MAVLINK_ROUTER),)
 export MAVLINK_ROUTER
 endif
 
-.PHONY: run test test-peers lint bench bench-quick bench-faults bench-soak docs clean
+.PHONY: run test test-peers test-cluster lint bench bench-quick bench-faults bench-soak docs clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -32,13 +32,19 @@ run: $(STAMP)
 	$(BIN)/companion sim --duration 120 --scenario mixed --realtime --horizon-camera thesis
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not sitl and not router"
+	$(BIN)/python -m pytest -q -m "not sitl and not router and not cluster"
 
 # The tests against the peer programs (the real ArduPlane SITL, mavlink-routerd): a few minutes
 # more, so apart from `make test`; .ci/run runs both. Without the programs pytest deselects
 # them all and says so (exit 5: no test ran, which is not a failure here).
 test-peers: $(STAMP)
 	$(BIN)/python -m pytest -q -m "sitl or router" || [ $$? -eq 5 ]
+
+# Campaigns on a real two-node Ray cluster in a loopback-only network namespace (about a minute
+# and a half; needs root or user namespaces for `unshare -n`): apart from `make test`, .ci/run
+# runs it.
+test-cluster: $(STAMP)
+	$(BIN)/python -m pytest -q -m cluster
 
 lint: $(STAMP)
 	$(BIN)/ruff check companion gcs_bridge horizon legacy_protocol tests bench

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from companion.sim.runner import SimOptions
@@ -167,37 +168,88 @@ def sim_options(args: argparse.Namespace, scale: float) -> SimOptions:
 
 
 def _campaign(args: argparse.Namespace) -> int:
+    """`--campaign SPEC`: fly (or resume) a campaign, or with --search run a parameter search,
+    through the local pool or a Ray cluster (companion.sim.campaign)."""
     from datetime import UTC, datetime
 
-    from companion.sim.campaign import CampaignError, FlightSpec, load_campaign, run_campaign
+    from companion.sim.campaign import CampaignError, load_campaign, run_campaign
+    from companion.sim.campaign_state import output_uri
+    from companion.sim.executors import ExecutorError
+    from companion.sim.progress import CampaignProgress, final_table
 
+    if args.jobs is not None and args.jobs < 1:
+        print(f"companion sim: --jobs {args.jobs}: at least 1", file=sys.stderr)
+        return 2
     try:
-        specs = load_campaign(args.campaign)
+        if args.search:
+            from companion.sim.search import load_search
+
+            search = load_search(args.campaign)
+            specs = []
+        else:
+            search = None
+            specs = load_campaign(args.campaign)
     except CampaignError as exc:
         print(f"companion sim: --campaign {exc}", file=sys.stderr)
         return 2
-    if args.jobs < 1:
-        print(f"companion sim: --jobs {args.jobs}: at least 1", file=sys.stderr)
-        return 2
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    out = args.campaign_dir or Path("campaigns") / f"{args.campaign.stem}-{stamp}"
+    out = output_uri(args.campaign_dir or Path("campaigns") / f"{args.campaign.stem}-{stamp}")
+    try:
+        executor = _executor(args)
+    except ExecutorError as exc:
+        print(f"companion sim: {exc}", file=sys.stderr)
+        return 2
+    found: dict[str, Any] | None = None
+    try:
+        if search is not None:
+            from companion.sim.search import run_search
 
-    def progress(spec: FlightSpec, n: int, total: int) -> None:
-        s = spec.record()
-        state = "ok" if s["exit_code"] == 0 else f"FAILED ({s['error']})"
-        print(f"[{n}/{total}] flight {s['index']}: {state}, {s['wall_s']} s, "
-              f"{s['restarts']} restarts", file=sys.stderr)
-
-    result = run_campaign(specs, out, args.jobs, spec_path=args.campaign, progress=progress)
+            progress = CampaignProgress(search.trials, 0)
+            try:
+                found = run_search(search, out, executor, storage=args.search_storage,
+                                   events=progress.event)
+            finally:
+                progress.close()
+        else:
+            progress = CampaignProgress(len(specs), 0)
+            try:
+                result = run_campaign(specs, out, executor, spec_path=args.campaign,
+                                      retry_failed=args.retry_failed, events=progress.event)
+            finally:
+                progress.close()
+    except KeyboardInterrupt:
+        print(f"companion sim: campaign interrupted; run the same command again to fly the "
+              f"rest ({out})", file=sys.stderr)
+        return 130
+    except (CampaignError, ValueError) as exc:  # the campaign dir, the study's database
+        print(f"companion sim: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the output cannot be written (a full disk, no permission)
+        print(f"companion sim: --campaign-dir {out}: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        executor.close()  # before printing: Ray's executor holds stdout for its own lines
+    if found is not None:
+        print(json.dumps(found, indent=2) if args.json else
+              f"search: best {found['metric']} = {found['best_value']} with "
+              f"{found['best_params']} after {found['trials']} trials; {found['best_parm']}")
+        return 0
     if args.json:
-        import json
-
         print(json.dumps(result, indent=2))
     else:
-        print(f"campaign: {result['ok']}/{result['flights']} flights ok in {result['wall_s']} s "
-              f"({result['simulated_s']:.0f} simulated s, {result['speed']}x, {args.jobs} jobs), "
-              f"{result['restarts']} restarts; {out / 'campaign.json'}")
+        print(final_table(result))
+        print(f"campaign: {result['ok']}/{result['flights']} flights ok; {out}/campaign.json")
     return 0 if result["failed"] == 0 else 1
+
+
+def _executor(args: argparse.Namespace) -> Any:
+    from companion.sim.executors import ExecutorError, LocalExecutor, RayExecutor
+
+    if args.executor == "ray":
+        return RayExecutor(args.ray_address, args.jobs, max_tries=args.max_tries)
+    if args.ray_address:
+        raise ExecutorError("--ray-address needs --executor ray")
+    return LocalExecutor(args.jobs or max(1, os.cpu_count() or 1))
 
 
 def _configured(args: argparse.Namespace, key: str) -> bool:
@@ -269,11 +321,28 @@ def add_commands(sub: argparse._SubParsersAction,
     speed.add_argument("--speed", type=float, help="any time scale, e.g. 2.5")
     p.add_argument("--campaign", type=Path, metavar="SPEC",
                    help="fly every flight of a campaign specification (TOML; docs/sitl.md)")
-    p.add_argument("--jobs", type=int, default=max(1, (os.cpu_count() or 1)), metavar="J",
-                   help="flights of a campaign flown at a time (default: one per core)")
-    p.add_argument("--campaign-dir", type=Path, metavar="DIR",
-                   help="where a campaign's flights, summary and dataset go "
-                        "(default campaigns/<spec name>-<UTC time>)")
+    p.add_argument("--jobs", type=int, default=None, metavar="J",
+                   help="flights of a campaign flown at a time (default: one per core; with "
+                        "--executor ray, the cluster's CPUs)")
+    p.add_argument("--campaign-dir", metavar="DIR",
+                   help="where a campaign's flights, state and dataset go: a path or a URI "
+                        "pyarrow writes (s3://..., gs://...); default campaigns/<spec name>-<UTC "
+                        "time>. The same directory again resumes the campaign")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: processes of this machine (default); ray: Ray tasks on a "
+                        "cluster (pip install 'uav-companion[cluster]'; docs/campaigns.md)")
+    p.add_argument("--ray-address", metavar="HOST:PORT",
+                   help="the Ray cluster to join (default: start a local one)")
+    p.add_argument("--max-tries", type=int, default=3, metavar="N",
+                   help="with --executor ray: times a flight is sent again after its node was "
+                        "lost, before it is recorded failed (default 3)")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="resuming a campaign: fly again the flights recorded failed too")
+    p.add_argument("--search", action="store_true",
+                   help="the campaign's [search] table: an Optuna study of its parameters "
+                        "(docs/campaigns.md)")
+    p.add_argument("--search-storage", metavar="URL",
+                   help="the study's database (default: SQLite file in the campaign dir)")
     speed.add_argument("--lockstep", action="store_true",
                        help="world and runtime in one process on simulated time, as fast as "
                             "the arithmetic; deterministic (no ground links: docs/sitl.md)")
