@@ -170,7 +170,13 @@ def test_garbage_flood_does_not_disturb_the_aircraft(tmp_path: Path) -> None:
         t = imu["time_s"]
         window = (t > flood_start + 0.5) & (t < flood_end - 0.5)
         rate = (np.count_nonzero(window) - 1) / (t[window][-1] - t[window][0])
-        assert abs(rate / 100.0 - 1) < 0.01, f"IMU at {rate:.2f} Hz during the flood"
+        # not one IMU frame lost to the flood: the device's counter steps by one throughout
+        steps = np.diff(imu["counter"][window].astype(int)) % 100
+        assert np.all(steps == 1), f"IMU counter jumps during the flood: {sorted(set(steps))}"
+        # and the rate is the device's: the records' host times carry the scheduler's jitter
+        # at the window's two ends (101.97 Hz seen beside a second test worker), a flood that
+        # starved the thread would show tens of percent
+        assert abs(rate / 100.0 - 1) < 0.05, f"IMU at {rate:.2f} Hz during the flood"
         assert rss_after - rss_before < 8 * 2**20, f"memory grew {(rss_after - rss_before) / 2**20:.1f} MiB"
         # the flood never changed a parameter (the one valid command was cut or padded)
         pfile = tmp_path / "params.parm"
