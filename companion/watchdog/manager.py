@@ -68,8 +68,7 @@ IMU's 500 ms window is 100 ms of host time, and on a 2-core machine with other w
 and GPS threads were kept from running that long and restarted (tests/test_sim_runtime.py); at
 0.25 s they still were, beside a busy core and a second test worker. A real stall (a thread in a
 loop) is still caught, a second of host time later. Silence (a thread that loops without data)
-is still judged on the window itself, and in flight (scale 1) the thresholds are the
-parameters' own."""
+is judged on the window itself; in flight the thresholds are the parameters' own."""
 
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
@@ -150,8 +149,7 @@ class ThreadManager:
         self._seen_beats: dict[str, int] = {}
         self._seen_bytes: dict[str, int] = {}
         self._silent: dict[str, bool] = {}
-        self._progress_host_ns: dict[str, int] = {}
-        """Host time of the last check that saw a thread cycle or beat (`_host_hiccup`)."""
+        self._progress_host_ns: dict[str, int] = {}  # last check that saw a cycle or beat
         self._armed: dict[str, bool] = {}  # the periodic section's first window has begun
         self._restart_times: dict[str, deque[float]] = {}
         self._abandoned_workers: list[Worker] = []
