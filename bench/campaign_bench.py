@@ -15,7 +15,8 @@ parameter search adds per trial.
 
 Each campaign goes to a new directory; the numbers are campaign.json's wall time (the flights,
 their markers and the dataset), measured in this process. Writes bench/results/<date>-campaign.
-{json,md} with the command and the commit.
+json (bench/result.py: the command, the commit, the machine and every figure), rendered on
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -147,8 +147,6 @@ def markdown(result: dict[str, Any]) -> str:
     p1, p2, p3 = result["part1"], result["part2"], result["part3"]
     n, d = result["flights"], result["duration_s"]
     lines = [
-        f"# Campaign executors ({result['date']}, commit {result['commit']})", "",
-        f"Command: `{result['command']}` on this machine ({result['cpus']} cores, shared).", "",
         f"## Pool against Ray: {n} lockstep flights of {d:g} simulated s, {result['slots']} "
         "at a time", "",
         "| executor | runs (wall s) | mean wall s | flights / s |", "|---|---|---|---|",
@@ -173,42 +171,38 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flights", type=int, default=20)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--slots", type=int, default=2)
     ap.add_argument("--trials", type=int, default=8)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     ap.add_argument("--nodes-part", nargs=2, type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.nodes_part:
         nodes_part(*args.nodes_part)
-        return
+        return 0
     import os
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                            capture_output=True, text=True).stdout.strip()
     result: dict[str, Any] = {
-        "date": datetime.now(UTC).strftime("%Y-%m-%d"), "commit": commit,
-        "command": "python bench/campaign_bench.py " + " ".join(sys.argv[1:]),
         "cpus": os.cpu_count(), "flights": args.flights, "duration_s": args.duration,
         "slots": args.slots, "load_before": [round(x, 2) for x in os.getloadavg()]}
     with tempfile.TemporaryDirectory(prefix="campaign-bench-") as tmp_name:
         tmp = Path(tmp_name)
         spec = spec_file(tmp, args.flights, args.duration)
         result["part1"] = part1(tmp, spec, args.slots)
-        print(json.dumps(result["part1"]), flush=True)
         result["part2"] = part2(tmp, spec)
-        print(json.dumps(result["part2"]), flush=True)
         result["part3"] = part3(tmp, args.trials, args.duration, args.slots)
     result["load_after"] = [round(x, 2) for x in os.getloadavg()]
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = args.out / f"{result['date']}-campaign"
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    stem.with_suffix(".md").write_text(markdown(result), encoding="utf-8")
     print(markdown(result))
+    # every figure as data too (bench/result.py keeps a whole-JSON line as data, not prose)
+    print(json.dumps(result))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    from bench.result import run_captured
+
+    if "--nodes-part" in sys.argv:  # the inner half of part 2, inside its network namespace
+        sys.exit(main())
+    sys.exit(run_captured("campaign", ["companion/sim", "bench/campaign_bench.py"], main))

@@ -3,6 +3,9 @@
     python bench/replay_logs_bench.py                      # tests/data/replay, tests/data/px4-ulog
     python bench/replay_logs_bench.py DIR... [--limit N]   # any logs (directories searched)
     python bench/replay_logs_bench.py --quick              # the first two logs
+    python bench/replay_logs_bench.py erlerobot-logs --result replay_logs_public
+        # a checkout of github.com/erlerobot/logs beside the current directory: public logs
+        # with no licence, so not in the repository; docs/benchmarks.md names its commit
 
 For every log (the replay's `find_logs`: .bin/.BIN/.ulg/.tlog, recursively) four replays, all
 through `companion.estimation.replay.runner.replay`:
@@ -67,6 +70,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("paths", nargs="*", type=Path, help="logs or directories")
     ap.add_argument("--limit", type=int, default=0, help="at most this many logs")
     ap.add_argument("--quick", action="store_true", help="the first two logs only")
+    ap.add_argument("--result", default="replay_logs",
+                    help="the result's name, its block on docs/benchmarks.md (replay_logs_public: "
+                         "a run over public logs that the repository does not hold)")
     args = ap.parse_args(argv)
     if args.quick:
         args.limit = 2
@@ -151,5 +157,6 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from bench.result import run_captured
 
-    sys.exit(run_captured("replay_logs", ["companion/estimation"],
-                          lambda: main(sys.argv[1:])))
+    argv = sys.argv[1:]
+    name = argv[argv.index("--result") + 1] if "--result" in argv[:-1] else "replay_logs"
+    sys.exit(run_captured(name, ["companion/estimation"], lambda: main(argv)))

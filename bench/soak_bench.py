@@ -223,4 +223,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from bench.result import run_captured
+
+    sys.exit(run_captured("soak", ["companion", "gcs_bridge", "legacy_protocol",
+                                   "bench/faults_bench.py", "bench/mavflood.py"], main))
