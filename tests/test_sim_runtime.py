@@ -95,7 +95,11 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     assert sim.get("real_time_factor", 0) > 4.0, sim
     check_estimator(fdir, scenario)
     if scenario == "auto":
-        check_auto_levels_wings(fdir)
+        # at 5x the control law's 20 ms period is 4 ms of host time, and a host that keeps it
+        # from running for 50 ms (a busy machine) costs it a quarter second of flight: the
+        # wings come back from the pilot's 30 deg here, the precision of the law is asserted
+        # in lockstep (test_auto_levels_the_wings_in_lockstep), where the host has no say
+        check_auto_levels_wings(fdir, max_deg=20.0, mean_deg=8.0, alt_m=20.0)
 
 
 def check_estimator(fdir: Path, scenario: str) -> None:
@@ -127,8 +131,9 @@ def check_estimator(fdir: Path, scenario: str) -> None:
     assert np.sqrt(rmse("vn_m_s") ** 2 + rmse("ve_m_s") ** 2 + rmse("vd_m_s") ** 2) < 0.5
 
 
-def check_auto_levels_wings(fdir: Path) -> None:
-    """The pilot banks to 30 deg, then engages automatic mode: the law levels and holds height."""
+def check_auto_levels_wings(fdir: Path, max_deg: float, mean_deg: float, alt_m: float) -> None:
+    """The pilot banks to 30 deg, then engages automatic mode: the law levels and holds height
+    (bounds on |roll| from 10 s after engagement and on the height change from engagement)."""
     truth = read_log(fdir / "truth.bin")
     state, surfaces = truth.data(1), truth.data(2)
     engaged = surfaces["time_s"][np.argmax(surfaces["auto_active"] == 1)]
@@ -137,12 +142,25 @@ def check_auto_levels_wings(fdir: Path) -> None:
     assert np.degrees(np.abs(before["roll_rad"])).mean() > 20, "the pilot was not banked"
     after = state[state["time_s"] > engaged + 10]
     assert len(after) > 100
-    assert np.degrees(np.abs(after["roll_rad"])).max() < 8.0
-    assert np.degrees(np.abs(after["roll_rad"])).mean() < 3.0
+    roll_deg = np.degrees(np.abs(after["roll_rad"]))
+    assert roll_deg.max() < max_deg, f"max |roll| {roll_deg.max():.2f} deg"
+    assert roll_deg.mean() < mean_deg, f"mean |roll| {roll_deg.mean():.2f} deg"
     alt0 = float(np.interp(engaged, state["time_s"], state["alt_m"]))
-    assert np.abs(after["alt_m"] - alt0).max() < 10.0
+    assert np.abs(after["alt_m"] - alt0).max() < alt_m
     control = read_log(fdir / "control.bin").data(1)
     assert control["enabled"].any()
+
+
+def test_auto_levels_the_wings_in_lockstep(tmp_path: Path) -> None:
+    """The whole loop (the IMU and GPS threads, the estimator, the control law, the servo
+    board, JSBSim) in lockstep: what the law achieves, whatever else the host does. Flown here:
+    max |roll| 0.77 deg, mean 0.21 deg, height within 2.2 m (seed 1); the bounds leave room for
+    a retune, not for a law that does not level (the pilot's 30 deg bank stays)."""
+    proc = subprocess.run(sim_cmd(tmp_path, "--lockstep", "--duration", "60", "--scenario",
+                                  "auto", "--seed", "1", "--json"),
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    check_auto_levels_wings(flight_dir(tmp_path), max_deg=3.0, mean_deg=1.0, alt_m=5.0)
 
 
 def test_sigterm_stops_cleanly_within_one_second(tmp_path: Path) -> None:
