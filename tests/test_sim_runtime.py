@@ -93,7 +93,9 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     assert truth["time_s"][-1] - truth["time_s"][0] > duration * 0.9
     sim = summary["simulator"]
     assert sim.get("real_time_factor", 0) > 4.0, sim
-    check_estimator(fdir, scenario)
+    # the estimator runs and tracks in real time; how well it tracks is asserted in lockstep
+    # (test_lockstep_flight_of_each_scenario), where the host's load cannot move the figure
+    check_estimator(fdir, scenario, loose=True)
     if scenario == "auto":
         # at 5x the control law's 20 ms period is 4 ms of host time, and a host that keeps it
         # from running for 50 ms (a busy machine) costs it a quarter second of flight: the
@@ -102,8 +104,14 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
         check_auto_levels_wings(fdir, max_deg=20.0, mean_deg=8.0, alt_m=20.0)
 
 
-def check_estimator(fdir: Path, scenario: str) -> None:
-    """The on-board GPS/INS filter against JSBSim's truth, in the shared NED frame."""
+def check_estimator(fdir: Path, scenario: str, loose: bool = False) -> None:
+    """The on-board GPS/INS filter against JSBSim's truth, in the shared NED frame.
+
+    `loose`: a real-time flight at 5x, whose samples reach the filter with the host's jitter
+    (five times larger in flight time): beside a busy core and a second test worker the
+    position RMSE reached 2.9 m where lockstep flies 0.75 m. Its bounds still fail a filter
+    that does not track (tens of degrees, hundreds of metres); the tight ones are lockstep's."""
+    scale = 4.0 if loose else 1.0
     est = read_log(fdir / "estimator.bin").data(1)
     truth = read_log(fdir / "truth.bin").data(1)
     assert len(est) > 1000
@@ -119,16 +127,16 @@ def check_estimator(fdir: Path, scenario: str) -> None:
         return float(np.sqrt(np.mean(err**2)))
 
     if scenario != "aerobatic":  # Euler angles are singular in the loop's vertical climb
-        assert np.degrees(rmse("roll_rad", True)) < 1.0
-        assert np.degrees(rmse("pitch_rad", True)) < 1.0
+        assert np.degrees(rmse("roll_rad", True)) < 1.0 * scale
+        assert np.degrees(rmse("pitch_rad", True)) < 1.0 * scale
         # heading in straight level flight is seen only through the GPS course and the small
         # accelerations of holding it: 2.75-3.15 deg over ten of these 60 s flights on a quiet
         # machine, 4.18 deg once beside a second test worker (a real-time flight's samples
         # arrive with the host's jitter), so 5 deg: a heading that is not estimated is tens
         yaw_bound_deg = 5.0 if scenario == "level" else 3.0
-        assert np.degrees(rmse("yaw_rad", True)) < yaw_bound_deg
-    assert np.hypot(rmse("north_m"), rmse("east_m")) < 2.0
-    assert np.sqrt(rmse("vn_m_s") ** 2 + rmse("ve_m_s") ** 2 + rmse("vd_m_s") ** 2) < 0.5
+        assert np.degrees(rmse("yaw_rad", True)) < yaw_bound_deg * scale
+    assert np.hypot(rmse("north_m"), rmse("east_m")) < 2.0 * scale
+    assert np.sqrt(rmse("vn_m_s") ** 2 + rmse("ve_m_s") ** 2 + rmse("vd_m_s") ** 2) < 0.5 * scale
 
 
 def check_auto_levels_wings(fdir: Path, max_deg: float, mean_deg: float, alt_m: float) -> None:
@@ -151,16 +159,23 @@ def check_auto_levels_wings(fdir: Path, max_deg: float, mean_deg: float, alt_m: 
     assert control["enabled"].any()
 
 
-def test_auto_levels_the_wings_in_lockstep(tmp_path: Path) -> None:
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_lockstep_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     """The whole loop (the IMU and GPS threads, the estimator, the control law, the servo
-    board, JSBSim) in lockstep: what the law achieves, whatever else the host does. Flown here:
-    max |roll| 0.77 deg, mean 0.21 deg, height within 2.2 m (seed 1); the bounds leave room for
-    a retune, not for a law that does not level (the pilot's 30 deg bank stays)."""
+    board, JSBSim) in lockstep: how well the filter tracks and the law flies, whatever else the
+    host does. Flown here (seed 1): roll RMSE 0.18-0.91 deg, heading 0.55-2.92 deg, position
+    0.75 m, velocity 0.10-0.13 m/s; in `auto`, |roll| at most 0.77 deg (mean 0.21) and the
+    height within 2.2 m. The bounds leave room for a retune, not for a law that does not level
+    (the pilot's 30 deg bank stays: 12.5 deg with CTL_ROLL_KP 0) or a filter that does not
+    track."""
     proc = subprocess.run(sim_cmd(tmp_path, "--lockstep", "--duration", "60", "--scenario",
-                                  "auto", "--seed", "1", "--json"),
+                                  scenario, "--seed", "1", "--json"),
                           capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    check_auto_levels_wings(flight_dir(tmp_path), max_deg=3.0, mean_deg=1.0, alt_m=5.0)
+    fdir = flight_dir(tmp_path)
+    check_estimator(fdir, scenario)
+    if scenario == "auto":
+        check_auto_levels_wings(fdir, max_deg=3.0, mean_deg=1.0, alt_m=5.0)
 
 
 def test_sigterm_stops_cleanly_within_one_second(tmp_path: Path) -> None:
