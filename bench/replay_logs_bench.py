@@ -70,9 +70,6 @@ def main(argv: list[str]) -> int:
     ap.add_argument("paths", nargs="*", type=Path, help="logs or directories")
     ap.add_argument("--limit", type=int, default=0, help="at most this many logs")
     ap.add_argument("--quick", action="store_true", help="the first two logs only")
-    ap.add_argument("--result", default="replay_logs",
-                    help="the result's name, its block on docs/benchmarks.md (replay_logs_public: "
-                         "a run over public logs that the repository does not hold)")
     args = ap.parse_args(argv)
     if args.quick:
         args.limit = 2
@@ -157,6 +154,5 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from bench.result import run_captured
 
-    argv = sys.argv[1:]
-    name = argv[argv.index("--result") + 1] if "--result" in argv[:-1] else "replay_logs"
-    sys.exit(run_captured(name, ["companion/estimation"], lambda: main(argv)))
+    sys.exit(run_captured("replay_logs", ["companion/estimation"],
+                          lambda: main(sys.argv[1:])))

@@ -250,8 +250,19 @@ def parse_markdown(text: str) -> list[dict[str, Any]]:
 
 def run_captured(name: str, paths_measured: list[str], main: Callable[[], int | None]) -> int:
     """Runs a benchmark's `main` that prints its own markdown, records what it prints and
-    writes the result when it succeeds (a failed run leaves the last good result in place)."""
-    res = Result(name, paths_measured, quick="--quick" in sys.argv[1:])
+    writes the result when it succeeds (a failed run leaves the last good result in place).
+
+    `--result NAME` on the command line (taken out before `main` parses it) names the result
+    and so its block on the page: a run with other settings (another receiver, longer
+    flights, public logs the repository does not hold) gets a block of its own instead of
+    replacing the benchmark's default run."""
+    argv = sys.argv[1:]
+    if "--result" in argv[:-1]:
+        at = argv.index("--result")
+        name = argv[at + 1]
+        del sys.argv[at + 1:at + 3]
+    res = Result(name, paths_measured, quick="--quick" in sys.argv[1:],
+                 argv=argv)
     with res.capture():
         code = main() or 0
     if code == 0:
