@@ -7,8 +7,10 @@ sub-commands through an `add_commands(subparsers)` function, so this file only r
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -210,6 +212,11 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         parser.print_help()
         return 2
+    if getattr(args, "fast_exit", False):
+        # the long-running commands (a flight, a simulation, a fleet): `kill -USR1 PID` writes
+        # every thread's Python stack to stderr (the journal under systemd) and the process
+        # flies on, which is how a process that will not stop is looked into in the field
+        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
     try:
         rc = int(func(args) or 0)
     except ConfigError as exc:
