@@ -7,6 +7,7 @@ sub-commands through an `add_commands(subparsers)` function, so this file only r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import logging
 import os
@@ -216,7 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         # the long-running commands (a flight, a simulation, a fleet): `kill -USR1 PID` writes
         # every thread's Python stack to stderr (the journal under systemd) and the process
         # flies on, which is how a process that will not stop is looked into in the field
-        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
+        # (an stderr that is no file, such as a test's captured stream, goes without it)
+        with contextlib.suppress(OSError, ValueError):
+            faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
     try:
         rc = int(func(args) or 0)
     except ConfigError as exc:
