@@ -61,8 +61,13 @@ def test_a_fast_flight_sends_the_detectors_fixes_and_the_estimator_fuses_them(
     # most of what was sent after the filter started (a few seconds in) was fused
     used = est["counters"]["horizon_used"]
     assert used >= 0.7 * (cam["sent"] - 10 * 10), (used, cam)
-    # and the IMU's slow block (once a second) gave the filter the part's temperature
-    assert est["counters"]["temperature_readings"] >= DURATION_S - 10, est["counters"]
+    # and the IMU's slow block (once a simulated second) gave the filter the part's
+    # temperature: counted against the seconds the world flew, which lag the runtime's clock
+    # when the host cannot render and detect 50 frames a second (28 readings in a 40 s flight
+    # beside a busy core and a second test worker); 10 s for the filter's start
+    flown_s = summary["simulator"]["sim_time_s"]
+    assert flown_s > 0.5 * DURATION_S, summary["simulator"]
+    assert est["counters"]["temperature_readings"] >= flown_s - 10, (est["counters"], flown_s)
     assert summary["sensors"]["imu_profile"] == "simple"
 
 
