@@ -148,15 +148,19 @@ def check_auto_levels_wings(fdir: Path, max_deg: float, mean_deg: float, alt_m: 
     assert surfaces["auto_active"].any(), "automatic mode never engaged"
     before = state[(state["time_s"] > engaged - 2) & (state["time_s"] < engaged)]
     assert np.degrees(np.abs(before["roll_rad"])).mean() > 20, "the pilot was not banked"
-    after = state[state["time_s"] > engaged + 10]
+    # judged while the law ran: at the stop the control thread ends before the world does,
+    # and on a busy machine the world flew on for seconds, its pilot's 30 deg bank back
+    # (32 deg in the last records of a 5x flight beside a busy core and a second worker)
+    control = read_log(fdir / "control.bin").data(1)
+    assert control["enabled"].any()
+    flown = state["time_s"] < control["time_s"][-1]
+    after = state[(state["time_s"] > engaged + 10) & flown]
     assert len(after) > 100
     roll_deg = np.degrees(np.abs(after["roll_rad"]))
     assert roll_deg.max() < max_deg, f"max |roll| {roll_deg.max():.2f} deg"
     assert roll_deg.mean() < mean_deg, f"mean |roll| {roll_deg.mean():.2f} deg"
     alt0 = float(np.interp(engaged, state["time_s"], state["alt_m"]))
     assert np.abs(after["alt_m"] - alt0).max() < alt_m
-    control = read_log(fdir / "control.bin").data(1)
-    assert control["enabled"].any()
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)
