@@ -154,7 +154,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"{p1['pool_wall_s']} | {p1['pool_flights_per_s']} |",
         f"| local Ray | {', '.join(str(r['wall_s']) for r in p1['runs']['ray'])} | "
         f"{p1['ray_wall_s']} | {p1['ray_flights_per_s']} |", "",
-        "Order: pool, Ray, Ray, pool, pool, Ray (the machine is shared with other work; load average "
+        "Order: pool, Ray, Ray, pool, pool, Ray (so that a change in the machine's load falls on "
+        "both; load average "
         f"{result['load_before']} before, {result['load_after']} after).", "",
         f"Ray / pool throughput: **{p1['throughput_ratio_ray_over_pool']}x** (target >= 0.9); "
         f"Ray overhead per flight {p1['ray_overhead_per_flight_s']} s; Ray's start-up "
@@ -166,8 +167,11 @@ def markdown(result: dict[str, Any]) -> str:
         f"Two nodes / one: {p2['two_over_one']}x.", "",
         f"## Search overhead ({p3['trials']} trials against {p3['trials']} plain flights, pool)",
         "",
-        f"Campaign {p3['campaign_wall_s']} s, search {p3['search_wall_s']} s: "
-        f"**{p3['overhead_per_trial_s']} s per trial**; best {p3['best']}.", ""]
+        "| what | wall s | overhead per trial s |", "|---|---|---|",
+        f"| {p3['trials']} plain flights (a campaign) | {p3['campaign_wall_s']} | |",
+        f"| a search of {p3['trials']} trials (Optuna's ask/tell, its SQLite study, the metric) "
+        f"| {p3['search_wall_s']} | **{p3['overhead_per_trial_s']}** |", "",
+        f"Best trial: {p3['best']}.", ""]
     return "\n".join(lines)
 
 
