@@ -122,9 +122,14 @@ def main() -> None:
         report["resumed"] = finish(campaign(spec, resumed, cluster.address))
         report["resumed"]["hashes"] = hashes(resumed)
 
-        # 3: the second node killed while it flies a flight
+        # 3: the second node killed while it flies a flight: flights of 120 simulated s (some
+        # 5 s of wall time in lockstep), as a 6 s flight could end between the line that
+        # says it started and the kill on a quiet machine (seen: no flight was lost)
         lost = work / "lost"
-        proc = campaign(spec, lost, cluster.address)
+        long_spec = work / "long.toml"
+        long_spec.write_text(SPEC.replace("duration_s = 6", "duration_s = 120"),
+                             encoding="utf-8")
+        proc = campaign(long_spec, lost, cluster.address)
         until_line(proc, lambda line: f"started on node {second.node_id}" in line)
         cluster.remove_node(second, allow_graceful=False)
         report["lost"] = finish(proc)
