@@ -100,7 +100,7 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
         # at 5x the control law's 20 ms period is 4 ms of host time, and a host that keeps it
         # from running for 50 ms (a busy machine) costs it a quarter second of flight: the
         # wings come back from the pilot's 30 deg here, the precision of the law is asserted
-        # in lockstep (test_auto_levels_the_wings_in_lockstep), where the host has no say
+        # in lockstep (test_lockstep_flight_of_each_scenario), where the host has no say
         check_auto_levels_wings(fdir, max_deg=20.0, mean_deg=8.0, alt_m=20.0)
 
 
