@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -293,13 +294,30 @@ def test_a_full_output_disk_records_each_flight_failed_and_ends_in_one_line(
     assert len(failed) == 2 and all("No space left on device" in line for line in failed)
 
 
-def test_ctrl_c_stops_the_flights_under_way_and_says_how_to_go_on(tmp_path: Path) -> None:
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _sigint_ignored() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize(("sig", "inherited"), [
+    (signal.SIGINT, _sigint_default),
+    # `companion sim --campaign ... &` in a script or a CI step: the shell starts it with
+    # SIGINT ignored, and Python keeps that unless the command takes the signal over
+    (signal.SIGINT, _sigint_ignored),
+    (signal.SIGTERM, _sigint_default),
+], ids=["SIGINT", "SIGINT-ignored-at-start", "SIGTERM"])
+def test_ctrl_c_stops_the_flights_under_way_and_says_how_to_go_on(
+        tmp_path: Path, sig: signal.Signals, inherited: Callable[[], None]) -> None:
     spec = tmp_path / "spec.toml"
     spec.write_text(RESUME_SPEC, encoding="utf-8")
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "companion", "sim", "--campaign", str(spec),
                              "--campaign-dir", str(out), "--jobs", "1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=inherited)
     assert proc.stderr is not None
     for line in proc.stderr:
         if line.startswith("[1/3]"):
@@ -308,9 +326,9 @@ def test_ctrl_c_stops_the_flights_under_way_and_says_how_to_go_on(tmp_path: Path
     while not _flight_processes(out) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert _flight_processes(out), "the second flight never started"
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
+    assert proc.returncode == 128 + sig, err
     assert err.strip().splitlines()[-1] == (
         f"companion sim: campaign interrupted; run the same command again to fly the rest "
         f"({out})")

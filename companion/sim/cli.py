@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import logging
 import os
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from companion.sim.runner import SimOptions
+
+log = logging.getLogger(__name__)
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -200,27 +206,29 @@ def _campaign(args: argparse.Namespace) -> int:
         print(f"companion sim: {exc}", file=sys.stderr)
         return 2
     found: dict[str, Any] | None = None
+    stopped_by: list[int] = []
     try:
-        if search is not None:
-            from companion.sim.search import run_search
+        with _stop_signals_interrupt(stopped_by):
+            if search is not None:
+                from companion.sim.search import run_search
 
-            progress = CampaignProgress(search.trials, 0)
-            try:
-                found = run_search(search, out, executor, storage=args.search_storage,
-                                   events=progress.event)
-            finally:
-                progress.close()
-        else:
-            progress = CampaignProgress(len(specs), 0)
-            try:
-                result = run_campaign(specs, out, executor, spec_path=args.campaign,
-                                      retry_failed=args.retry_failed, events=progress.event)
-            finally:
-                progress.close()
+                progress = CampaignProgress(search.trials, 0)
+                try:
+                    found = run_search(search, out, executor, storage=args.search_storage,
+                                       events=progress.event)
+                finally:
+                    progress.close()
+            else:
+                progress = CampaignProgress(len(specs), 0)
+                try:
+                    result = run_campaign(specs, out, executor, spec_path=args.campaign,
+                                          retry_failed=args.retry_failed, events=progress.event)
+                finally:
+                    progress.close()
     except KeyboardInterrupt:
         print(f"companion sim: campaign interrupted; run the same command again to fly the "
               f"rest ({out})", file=sys.stderr)
-        return 130
+        return 128 + (stopped_by[0] if stopped_by else signal.SIGINT)
     except (CampaignError, ValueError) as exc:  # the campaign dir, the study's database
         print(f"companion sim: {exc}", file=sys.stderr)
         return 2
@@ -240,6 +248,37 @@ def _campaign(args: argparse.Namespace) -> int:
         print(final_table(result))
         print(f"campaign: {result['ok']}/{result['flights']} flights ok; {out}/campaign.json")
     return 0 if result["failed"] == 0 else 1
+
+
+@contextlib.contextmanager
+def _stop_signals_interrupt(stopped_by: list[int]) -> Iterator[None]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in a campaign, whatever the process inherited.
+
+    Started with SIGINT ignored (`cmd &` in a script or a CI job's background step: the shell
+    ignores it for background commands, and Python keeps an inherited SIG_IGN), a campaign would
+    fly on through `kill -INT`; a SIGTERM (systemd, `kill`) would end it at once, its flights
+    killed with it and campaign.json not saying what was flown. Both now take the path of a
+    Ctrl-C: the flights under way are stopped, the campaign's state is written, and the same
+    command resumes it; a repeated signal is logged, not raised. `stopped_by` receives the signal
+    (the exit code is 128 + it)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, _frame: object) -> None:
+        if stopped_by:  # a repeat must not cut short the saving of what was flown
+            log.warning("signal %s: the campaign is already stopping",
+                        signal.Signals(signum).name)
+            return
+        stopped_by.append(signum)
+        raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
 
 
 def _executor(args: argparse.Namespace) -> Any:
