@@ -82,9 +82,11 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     # the IMU's and GPS's records are the world's frames, each one decoded: exact within 1 %.
     # The servo board's are its driver's 20 ms timer at 5x (a 4 ms period of host time): on a
     # busy or slow 2-core machine it misses some periods (it catches up 3, then drops them;
-    # 47.45 Hz was seen on a slow VM), so 10 %; its exact rate on a quiet machine is the
-    # benchmarks' business (bench/sim_bench.py)
-    tolerance = {"imu": 0.01, "gps": 0.01, "servo": 0.10}
+    # 47.45 Hz was seen on a slow VM, 44.47 Hz beside a busy core and a second test worker),
+    # so 25 %, which still fails a board thread that stalls or runs at half its rate. Its
+    # exact rate on a quiet machine is the benchmarks' business (bench/sim_bench.py), and in
+    # lockstep (test_lockstep_flight_of_each_scenario) the host has no say
+    tolerance = {"imu": 0.01, "gps": 0.01, "servo": 0.25}
     for name, rate in rates.items():
         assert abs(rate / nominal[name] - 1) < tolerance[name], \
             f"{scenario}: {name} at {rate:.2f} Hz"
@@ -177,6 +179,12 @@ def test_lockstep_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None
                           capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-2000:]
     fdir = flight_dir(tmp_path)
+    # every device at its nominal rate: in lockstep no host can make a driver miss a period
+    # (measured: 99.996, 9.997 and 50.000 Hz; the IMU's and GPS's last bits are where the
+    # world's 10 % and 90 % marks fall between frames)
+    for name, nominal_hz in (("imu", 100.0), ("gps", 10.0), ("servo", 50.0)):
+        rate = record_rate_hz(fdir / f"{name}.bin", 1)
+        assert abs(rate / nominal_hz - 1) < 0.002, f"{scenario}: {name} at {rate:.3f} Hz"
     check_estimator(fdir, scenario)
     if scenario == "auto":
         check_auto_levels_wings(fdir, max_deg=3.0, mean_deg=1.0, alt_m=5.0)
