@@ -64,13 +64,11 @@ a lockstep flight has no host time to hiccup."""
 STALL_MIN_HOST_S = 2.0
 """With a clock faster than the host's (`--speed S` above 1), a thread is judged stalled only
 after this much host time without a cycle or a heartbeat, however short its window: at 5x the
-IMU's 500 ms window is 100 ms of host time, and on a 2-core machine with other work healthy IMU
-and GPS threads were kept from running that long and restarted (tests/test_sim_runtime.py); at
-0.25 s they still were, beside a busy core and a second test worker, and at 1 s once: the IMU
-thread and the simulator's process (another process) both went 1.1 s without running. A real
-stall (a thread in a loop) is still caught, two seconds of host time later. Silence (a thread
-that loops without data) is judged on the window itself; in flight the thresholds are the
-parameters' own."""
+IMU's 500 ms window is 100 ms of host time, and beside a busy core and a second test worker
+healthy threads went without running for 0.25 s, and once for 1.1 s (the IMU thread and the
+simulator's process together), and were restarted (tests/test_sim_runtime.py). A real stall is
+still caught, 2 s of host time later; silence is judged on the window; in flight (1x) the
+thresholds are the parameters' own."""
 
 MANAGER_PARAMS: list[ParamSpec] = [
     int_param("MGR_EXEC_TIME_S", 0, 0, 864_000, "s",
