@@ -59,10 +59,14 @@ def record_rate_hz(path: Path, index: int) -> float:
     log = read_log(path)
     t = log.data(index)["time_s"]
     assert len(t) > 10, f"{path.name}: only {len(t)} records of format {index}"
-    # rate over the middle of the flight: start-up and shutdown are not steady state
-    lo, hi = np.percentile(t, [10, 90])
-    n = np.count_nonzero((t >= lo) & (t <= hi))
-    return float((n - 1) / (hi - lo))
+    # records per second over the middle 80 % of the flight's time (start-up and shutdown are
+    # not steady state). A fixed window of time, not percentiles of the records: a host that
+    # holds the world back for a moment makes it send those frames in a burst afterwards, and
+    # percentiles of bunched times read that as a higher rate (102.7 Hz at 5x beside a busy
+    # core), where a window of time still holds every frame unless the hold straddles its edge
+    lo, hi = t[0] + 0.1 * (t[-1] - t[0]), t[0] + 0.9 * (t[-1] - t[0])
+    n = np.count_nonzero((t >= lo) & (t < hi))
+    return float(n / (hi - lo))
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)
@@ -79,14 +83,17 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
              "gps": record_rate_hz(fdir / "gps.bin", 1),
              "servo": record_rate_hz(fdir / "servo.bin", 1)}
     nominal = {"imu": 100.0, "gps": 10.0, "servo": 50.0}
-    # the IMU's and GPS's records are the world's frames, each one decoded: exact within 1 %.
+    # the IMU's and GPS's records are the world's frames, each one decoded; at 5x a hold of
+    # the host that straddles the window's edge moves its frames across it (a 0.25 s hold of
+    # host time is 1.25 s of flight, 2.6 % of the window), so 3 %, which still fails a decoder
+    # that loses or repeats one frame in ten; lockstep asserts them within 0.5 %.
     # The servo board's are its driver's 20 ms timer at 5x (a 4 ms period of host time): on a
     # busy or slow 2-core machine it misses some periods (it catches up 3, then drops them;
     # 47.45 Hz was seen on a slow VM, 44.47 Hz beside a busy core and a second test worker),
     # so 25 %, which still fails a board thread that stalls or runs at half its rate. Its
     # exact rate on a quiet machine is the benchmarks' business (bench/sim_bench.py), and in
     # lockstep (test_lockstep_flight_of_each_scenario) the host has no say
-    tolerance = {"imu": 0.01, "gps": 0.01, "servo": 0.25}
+    tolerance = {"imu": 0.03, "gps": 0.03, "servo": 0.25}
     for name, rate in rates.items():
         assert abs(rate / nominal[name] - 1) < tolerance[name], \
             f"{scenario}: {name} at {rate:.2f} Hz"
@@ -180,11 +187,11 @@ def test_lockstep_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None
     assert proc.returncode == 0, proc.stderr[-2000:]
     fdir = flight_dir(tmp_path)
     # every device at its nominal rate: in lockstep no host can make a driver miss a period
-    # (measured: 99.996, 9.997 and 50.000 Hz; the IMU's and GPS's last bits are where the
-    # world's 10 % and 90 % marks fall between frames)
+    # (measured: 100.02, 10.015 and 49.98 Hz: a record either side of the window's edges is
+    # 0.2 % of the GPS's 480, so 0.5 %; one frame in ten lost or repeated is 10 %)
     for name, nominal_hz in (("imu", 100.0), ("gps", 10.0), ("servo", 50.0)):
         rate = record_rate_hz(fdir / f"{name}.bin", 1)
-        assert abs(rate / nominal_hz - 1) < 0.002, f"{scenario}: {name} at {rate:.3f} Hz"
+        assert abs(rate / nominal_hz - 1) < 0.005, f"{scenario}: {name} at {rate:.3f} Hz"
     check_estimator(fdir, scenario)
     if scenario == "auto":
         check_auto_levels_wings(fdir, max_deg=3.0, mean_deg=1.0, alt_m=5.0)
