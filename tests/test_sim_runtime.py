@@ -55,6 +55,10 @@ def flight_dir(tmp: Path) -> Path:
     return dirs[0]
 
 
+NOMINAL_HZ = {"imu": 100.0, "gps": 10.0, "servo": 50.0}
+"""Each simulated device's record rate: the world's IMU and GPS frames, the servo driver's timer."""
+
+
 def record_rate_hz(path: Path, index: int) -> float:
     log = read_log(path)
     t = log.data(index)["time_s"]
@@ -82,7 +86,6 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     rates = {"imu": record_rate_hz(fdir / "imu.bin", 1),
              "gps": record_rate_hz(fdir / "gps.bin", 1),
              "servo": record_rate_hz(fdir / "servo.bin", 1)}
-    nominal = {"imu": 100.0, "gps": 10.0, "servo": 50.0}
     # the IMU's and GPS's records are the world's frames, each one decoded; at 5x a hold of
     # the host that straddles the window's edge moves its frames across it (a 0.25 s hold of
     # host time is 1.25 s of flight, 2.6 % of the window), so 3 %, which still fails a decoder
@@ -95,7 +98,7 @@ def test_fast_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None:
     # lockstep (test_lockstep_flight_of_each_scenario) the host has no say
     tolerance = {"imu": 0.03, "gps": 0.03, "servo": 0.25}
     for name, rate in rates.items():
-        assert abs(rate / nominal[name] - 1) < tolerance[name], \
+        assert abs(rate / NOMINAL_HZ[name] - 1) < tolerance[name], \
             f"{scenario}: {name} at {rate:.2f} Hz"
     truth = read_log(fdir / "truth.bin").data(1)
     assert np.all(np.isfinite(truth["roll_rad"]))
@@ -189,7 +192,7 @@ def test_lockstep_flight_of_each_scenario(tmp_path: Path, scenario: str) -> None
     # every device at its nominal rate: in lockstep no host can make a driver miss a period
     # (measured: 100.02, 10.015 and 49.98 Hz: a record either side of the window's edges is
     # 0.2 % of the GPS's 480, so 0.5 %; one frame in ten lost or repeated is 10 %)
-    for name, nominal_hz in (("imu", 100.0), ("gps", 10.0), ("servo", 50.0)):
+    for name, nominal_hz in NOMINAL_HZ.items():
         rate = record_rate_hz(fdir / f"{name}.bin", 1)
         assert abs(rate / nominal_hz - 1) < 0.005, f"{scenario}: {name} at {rate:.3f} Hz"
     check_estimator(fdir, scenario)
